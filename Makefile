@@ -1,0 +1,40 @@
+# Two commands on a fresh Debian machine:
+#   make demo   installs everything and runs the demo job on the embedded default
+#   make test   runs the test suite (fast and slow tiers)
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+LLVM := /usr/lib/x86_64-linux-gnu/libLLVM-19.so
+export DRJIT_LIBLLVM_PATH ?= $(LLVM)
+
+.PHONY: install system-deps demo test test-fast clean
+
+system-deps:
+	@if [ ! -e "$(LLVM)" ]; then \
+	  echo "installing Debian's libllvm19 (Dr.Jit crashes with the default LLVM 15)"; \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get install -y libllvm19 || { $$SUDO apt-get update && $$SUDO apt-get install -y libllvm19; }; \
+	fi
+
+$(BIN)/ndrf: pyproject.toml
+	$(MAKE) system-deps
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	# The CPU wheel of torch first: an unpinned torch would pull several GB of CUDA packages.
+	$(BIN)/pip install -q torch==2.13.0
+	$(BIN)/pip install -q -e '.[dev]'
+	touch $(BIN)/ndrf
+
+install: $(BIN)/ndrf
+
+demo: install
+	$(BIN)/ndrf -v run examples/demo.json --out runs/demo
+
+test: install
+	$(BIN)/python -m pytest
+
+test-fast: install
+	$(BIN)/python -m pytest -m "not slow"
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache

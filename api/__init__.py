@@ -1,0 +1,1 @@
+"""The HTTP API (FastAPI) and the web dashboard. Starts without importing Mitsuba or torch."""

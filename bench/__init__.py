@@ -1,0 +1,1 @@
+"""Benchmarks (timings live here, never in unit tests). Run with ``python -m bench.<name>``."""

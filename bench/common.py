@@ -1,0 +1,94 @@
+"""Shared pieces of the benchmarks: the machine, problems, errors, timing."""
+
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+def machine() -> dict:
+    """What the numbers were measured on."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    memory = None
+    try:
+        for line in open("/proc/meminfo"):
+            if line.startswith("MemTotal"):
+                memory = f"{int(line.split()[1]) / 2**20:.1f} GiB"
+    except OSError:
+        pass
+    import drjit
+    import mitsuba
+    import torch
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    return {"cpu": cpu, "cores": os.cpu_count(), "memory": memory, "python": platform.python_version(),
+            "mitsuba": mitsuba.__version__, "drjit": drjit.__version__, "torch": torch.__version__,
+            "commit": commit or None}
+
+
+def relative_error(g: np.ndarray, reference: np.ndarray) -> float:
+    return float(np.linalg.norm(g - reference) / max(np.linalg.norm(reference), 1e-30))
+
+
+@dataclass
+class Clock:
+    """Accumulates wall seconds spent inside ``with clock:`` blocks."""
+
+    seconds: float = 0.0
+    _start: float = field(default=0.0, repr=False)
+
+    def __enter__(self):
+        self._start = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc):
+        self.seconds += time.perf_counter() - self._start
+
+
+@contextmanager
+def timed():
+    clock = Clock()
+    with clock:
+        yield clock
+
+
+def problem(scene: str, keys: list[str], resolution=(64, 64), method: str | None = None):
+    """A Problem for a built-in scene, planned for ``method`` when given."""
+    from services.backend import use_mitsuba, use_torch
+
+    use_mitsuba(), use_torch()
+    from services.estimators.context import Problem
+    from services.scene.facts import probe_scene
+    from services.scene.load import load_scene
+    from services.scene.params import ParameterSet
+    from services.scene.planner import plan_effects
+
+    loaded = load_scene(builtin=scene, resolution=resolution)
+    prob = Problem(loaded, ParameterSet(loaded.params, keys))
+    if method is not None:
+        prob.apply_plan(plan_effects(probe_scene(loaded, prob.parameters), method))
+    return prob
+
+
+def markdown_table(header: list[str], rows: list[list]) -> str:
+    def cell(v):
+        if isinstance(v, float):
+            return f"{v:.3g}" if abs(v) < 1000 else f"{v:.0f}"
+        return str(v)
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines)

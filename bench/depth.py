@@ -1,0 +1,55 @@
+"""Cost of one optimization iteration against path length, for ``prb`` and ``ndrf-rhs``.
+
+In the closed hidden-object room (walls of albedo 0.5) light keeps bouncing: ``prb`` must trace
+paths of ``max_depth`` vertices, and its cost grows with the depth it is given; below the depth
+the light needs its gradient is biased. ``ndrf-rhs`` has no depth: it traces one bounce and the
+fields carry the rest, so its iteration cost is the same whatever the light does. The error of
+each is against ``prb`` at depth 64 (converged).
+"""
+
+from __future__ import annotations
+
+import logging
+
+from bench.common import problem, relative_error, timed
+
+log = logging.getLogger(__name__)
+
+
+def run(quick: bool) -> dict:
+    from schemas.solver import TrainingConfig
+    from services.estimators.gradients import Fields
+    from services.estimators.methods import make_method
+    from services.estimators.reference import Prb
+    from services.estimators.training import FieldTrainer
+
+    depths = [2, 4, 8, 16] if quick else [2, 3, 4, 6, 8, 12, 16]
+    spp, repeats = 16, (2 if quick else 3)
+    prob = problem("hidden-object", ["hidden.reflectance.value"])
+    reference = Prb(max_depth=64).images(prob, Fields(), spp=256 if quick else 1024, seed=5)
+    rows = []
+    for depth in depths:
+        method = Prb(max_depth=depth)
+        method.images(prob, Fields(), spp=1, seed=0)           # compile outside the clock
+        with timed() as t:
+            for r in range(repeats):
+                g = method.images(prob, Fields(), spp=spp, seed=r)
+        rows.append({"method": "prb", "depth": depth, "seconds": t.seconds / repeats,
+                     "error": relative_error(g, reference)})
+    planned = problem("hidden-object", ["hidden.reflectance.value"], method="ndrf-rhs")
+    config = TrainingConfig()
+    trainer = FieldTrainer(planned, config, radiance=True, differential=True, seed=0)
+    trainer.train(300 if quick else 600)
+    ndrf = make_method("ndrf-rhs", plan=planned.plan)
+    fields = Fields(trainer.radiance, trainer.differential)
+    ndrf.images(planned, fields, spp=1, seed=0)
+    with timed() as t:
+        for r in range(repeats):
+            trainer.train(config.steps_per_iteration)
+            g = ndrf.images(planned, fields, spp=spp, seed=r)
+    per_iteration = t.seconds / repeats
+    error = relative_error(g, reference)
+    for depth in depths:                                      # no depth parameter: the same cost
+        rows.append({"method": "ndrf-rhs", "depth": depth, "seconds": per_iteration, "error": error,
+                     "note": f"{config.steps_per_iteration} training steps + a {spp}-spp query"})
+    return {"spp": spp, "rows": rows}

@@ -1,0 +1,1 @@
+"""The ``ndrf`` command line: ``gradient``, ``run``, ``serve``, ``worker``, ``bench``."""

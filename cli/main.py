@@ -1,0 +1,27 @@
+"""Entry point of the ``ndrf`` console script."""
+
+from __future__ import annotations
+
+import click
+
+from cli.common import setup_logging
+from cli.gradient import gradient_command
+from cli.run import run_command
+from cli.service import bench_command, serve_command, worker_command
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("-v", "--verbose", count=True, help="More logging (-v info, -vv debug).")
+def main(verbose: int) -> None:
+    """Inverse rendering with Neural Differential Radiance Fields."""
+    setup_logging(verbose)
+
+
+main.add_command(gradient_command)
+main.add_command(run_command)
+main.add_command(serve_command)
+main.add_command(worker_command)
+main.add_command(bench_command)
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,77 @@
+"""``ndrf run``: an inverse-rendering job in-process (the embedded default), with progress."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import click
+
+from cli.common import read_job
+
+
+def _progress_hooks(total: int):
+    """Rich progress bar fed by the run's events (iteration, loss, ETA)."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                        TextColumn("loss {task.fields[loss]}"), TimeElapsedColumn(), TextColumn("ETA"),
+                        TimeRemainingColumn())
+    task = progress.add_task("starting", total=total, loss="-")
+
+    def on_event(event: dict) -> None:
+        kind = event["type"]
+        if kind == "iteration":
+            progress.update(task, completed=event["iteration"] + 1, description="optimizing",
+                            loss=f"{event['loss']:.4g}")
+        elif kind == "resumed":
+            progress.update(task, completed=event["iteration"], description="resumed")
+        elif kind == "plan":
+            progress.update(task, description="training fields" if any(event["plan"]["fields"].values()) else "optimizing")
+
+    return progress, on_event
+
+
+def _final_table(summary: dict):
+    from rich.table import Table
+
+    table = Table(title=f"{summary['method']}: {summary['status']} after {summary['iterations']} iterations "
+                        f"({summary['seconds']:.0f} s)")
+    for column in ("parameter", "init", "final", "target"):
+        table.add_column(column, justify="left" if column == "parameter" else "right")
+    targets = summary.get("target") or [math.nan] * len(summary["scalars"] or [])
+    for label, init, final, target in zip(summary["scalars"] or [], summary["init"], summary["final"], targets):
+        table.add_row(label, f"{init:.4f}", f"{final:.4f}", "-" if target is None or math.isnan(target) else f"{target:.4f}")
+    return table
+
+
+@click.command("run")
+@click.argument("job_path", type=click.Path(exists=True, dir_okay=False))
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True, help="Job folder for the artifacts.")
+@click.option("--resume", is_flag=True, help="Continue a killed run from its last checkpoint in OUT.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def run_command(job_path: str, out_dir: str, resume: bool, quiet: bool) -> None:
+    """Recover the job's parameters in-process; artifacts go to OUT (see README, 'Job folder')."""
+    from rich.console import Console
+
+    from services.optimize.loop import InverseRenderingRun, RunHooks
+    from services.store.layout import JobFolder
+
+    spec = read_job(job_path)
+    folder = JobFolder(out_dir)
+    if folder.summary_path.is_file() and not resume:
+        raise click.ClickException(f"{out_dir} already holds a finished run; use --resume or another --out")
+    run = InverseRenderingRun(spec, folder, base_dir=Path(job_path).resolve().parent)
+    console = Console(stderr=True)
+    if quiet:
+        summary = run.execute(resume=resume)
+    else:
+        progress, on_event = _progress_hooks(spec.iterations)
+        run.hooks = RunHooks(on_event=on_event)
+        with progress:
+            summary = run.execute(resume=resume)
+    if summary["final"] is not None:
+        console.print(_final_table(summary))
+    if summary["status"] != "succeeded":
+        raise click.ClickException(f"job {summary['status']}: {summary.get('error') or ''}".strip())
+    console.print(f"artifacts in {out_dir}")

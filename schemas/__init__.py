@@ -1,0 +1,1 @@
+"""Pydantic models shared by the API, the worker and the CLI (no Mitsuba, no torch)."""

@@ -1,0 +1,200 @@
+"""The inverse-rendering job file (``ndrf run JOB.json``, ``POST /v1/jobs``).
+
+A job names a scene, the parameters to recover with their initial values and bounds, the target
+images (rendered from known values, or uploaded), a gradient method and the budget. Everything
+but ``scene``, ``parameters`` and ``targets`` has a default. Unknown fields are errors, so a typo
+is reported instead of silently ignored.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from schemas.solver import TrainingConfig
+
+#: Public names of the gradient methods (see services.estimators.gradients).
+MethodName = Literal["ndrf-lhs", "ndrf-rhs", "radiance-cache", "direct", "prb"]
+METHOD_NAMES: tuple[str, ...] = ("ndrf-lhs", "ndrf-rhs", "radiance-cache", "direct", "prb")
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+# ------------------------------------------------------------------------------------ scene
+
+class BuiltinScene(_Strict):
+    """A scene shipped with the service."""
+
+    builtin: str = Field(description="Name of a built-in scene: cornell-box, hidden-object, mirror-box "
+                                     "(GET /v1/scenes lists them).", min_length=1, max_length=64)
+
+
+class XmlScene(_Strict):
+    """A Mitsuba 3 XML scene and the files it names (includes, meshes, textures)."""
+
+    xml: str = Field(description="The Mitsuba 3 XML document.", min_length=1)
+    files: dict[str, str] = Field(default_factory=dict,
+                                  description="Files the XML names, by path relative to it, as base64.")
+
+
+class PathScene(_Strict):
+    """A Mitsuba 3 XML file on the local disk (CLI only; the service refuses host paths)."""
+
+    path: str = Field(description="Path of the XML file, relative to the job file.", min_length=1)
+
+
+SceneSpec = Union[BuiltinScene, XmlScene, PathScene]
+
+
+# ------------------------------------------------------------------------------- parameters
+
+Scalars = Union[float, list[float]]
+
+
+class ParameterSpec(_Strict):
+    """One scene parameter to recover (a ``mi.traverse`` key)."""
+
+    key: str = Field(description="Mitsuba traverse key, e.g. 'red.reflectance.value'.", min_length=1, max_length=256)
+    init: Scalars | None = Field(None, description="Initial value (a number, or one per component; a single "
+                                                   "number is broadcast). Default: the scene's own value.")
+    bounds: tuple[float, float] | None = Field(
+        None, description="[lower, upper] projection bounds after each step. Default: [0, 1] for BSDF "
+                          "parameters, [0, +inf) for emitters.")
+
+    @field_validator("bounds")
+    @classmethod
+    def _ordered(cls, bounds):
+        if bounds is not None and not bounds[0] <= bounds[1]:
+            raise ValueError(f"bounds must be [lower, upper] with lower <= upper, got {list(bounds)}")
+        return bounds
+
+
+# ---------------------------------------------------------------------------------- targets
+
+class SyntheticTarget(_Strict):
+    """Render the target from the same scene with known parameter values."""
+
+    values: dict[str, Scalars] = Field(description="Parameter values of the target, by key.")
+    spp: int = Field(256, ge=1, le=65536, description="Samples per pixel of the target rendering.")
+
+
+class ImageTarget(_Strict):
+    """An uploaded target photograph for one sensor."""
+
+    sensor: int = Field(0, ge=0, le=64, description="Index of the scene sensor this image was taken with.")
+    data: str = Field(description="Base64 of an EXR, PNG or NPY image (linear RGB; PNG is sRGB-decoded).",
+                      min_length=1)
+
+
+class SyntheticTargets(_Strict):
+    synthetic: SyntheticTarget = Field(description="A target rendered from known values.")
+
+
+class ImageTargets(_Strict):
+    images: list[ImageTarget] = Field(description="Target images; several sensors make a multi-view job "
+                                                  "(losses are summed).", min_length=1, max_length=64)
+
+
+TargetSpec = Union[SyntheticTargets, ImageTargets]
+
+
+# ----------------------------------------------------------------------------------- render
+
+class RenderSpec(_Strict):
+    """How candidate images and gradients are rendered."""
+
+    spp: int = Field(16, ge=1, le=4096, description="Samples per pixel of the candidate render (Sec. 5, step 2).")
+    gradient_spp: int = Field(16, ge=1, le=4096,
+                              description="Samples per pixel of the gradient query (camera rays for ndrf-*, "
+                                          "radiance-cache and direct; paths for prb).")
+    resolution: tuple[int, int] | None = Field(None, description="[width, height] overriding the scene's film.")
+    max_depth: int = Field(12, ge=1, le=64, description="Maximum path depth of the path-traced candidate, the "
+                                                         "synthetic target and the prb reference.")
+
+    @field_validator("resolution")
+    @classmethod
+    def _positive(cls, resolution):
+        if resolution is not None and not (1 <= resolution[0] <= 8192 and 1 <= resolution[1] <= 8192):
+            raise ValueError(f"resolution must be [width, height] within 1..8192, got {list(resolution)}")
+        return resolution
+
+
+# ---------------------------------------------------------------------------------- effects
+
+Switch = Literal["auto", "on", "off"]
+
+
+class EffectOverrides(_Strict):
+    """Override the effect planner, which otherwise simulates only what the scene and the chosen
+    parameters can produce (the plan, with a reason per decision, is part of the job's record).
+    Forcing off an effect the plan needs biases the gradients; the plan says so in a warning."""
+
+    emission_term: Switch = Field("auto", description="∂E: derivative of emission (non-zero for emitter parameters).")
+    bsdf_term: Switch = Field("auto", description="(∂f) L: derivative of the BSDFs (non-zero for BSDF parameters).")
+    radiance_field: Switch = Field("auto", description="Train L_phi (needed for BSDF parameters under interreflection).")
+    differential_field: Switch = Field("auto", description="Train dL_theta (needed when light bounces between surfaces).")
+    delta_depth: int | None = Field(None, ge=0, le=64, description="Ideal-specular bounces to follow (default: what "
+                                                                   "the scene needs, at most training.delta_depth).")
+    drop_unreachable: bool = Field(True, description="Give scalars that cannot change the image a zero gradient "
+                                                     "without training for them.")
+    merge_channels: bool = Field(True, description="Carry only the RGB channels a scalar can change in dL_theta "
+                                                   "(an RGB albedo component changes one channel).")
+
+
+# -------------------------------------------------------------------------------------- job
+
+class JobSpec(_Strict):
+    """An inverse-rendering job (paper Sec. 5)."""
+
+    name: str | None = Field(None, max_length=200, description="Optional label.")
+    scene: SceneSpec = Field(description="The scene: {'builtin': NAME} or {'xml': ..., 'files': {...}}.")
+    parameters: list[ParameterSpec] = Field(min_length=1, max_length=64, description="Parameters to recover.")
+    targets: TargetSpec = Field(description="{'synthetic': {...}} or {'images': [...]}.")
+    method: MethodName = Field("ndrf-rhs", description="Gradient method.")
+    iterations: int = Field(60, ge=1, le=100000, description="Optimization iterations.")
+    learning_rate: float = Field(0.05, gt=0, le=100.0, description="Adam learning rate of the scene parameters.")
+    adam_betas: tuple[float, float] = Field(
+        (0.8, 0.99), description="Adam's decay rates of the first and second moment estimates, each in [0, 1). "
+                                  "Shorter than the usual (0.9, 0.999): with noisy Monte Carlo gradients and tens of "
+                                  "iterations, a long first-moment memory overshoots the optimum and a long second-moment "
+                                  "memory keeps the step large after the gradient has shrunk.")
+    final_learning_rate_ratio: float = Field(
+        0.1, gt=0, le=1.0, description="Learning rate of the last iteration as a fraction of learning_rate "
+                                       "(geometric decay; 1 keeps it constant). Noisy gradients need the decay "
+                                       "to settle.")
+    loss: Literal["l2", "l1"] = Field("l2", description="Image loss z(y): mean squared or mean absolute error.")
+    render: RenderSpec = Field(default_factory=RenderSpec, description="Rendering settings.")
+    training: TrainingConfig = Field(default_factory=TrainingConfig, description="Training of L_phi and dL_theta.")
+    effects: EffectOverrides = Field(default_factory=EffectOverrides, description="Overrides of the effect planner.")
+    checkpoint_every: int = Field(10, ge=1, le=100000, description="Write a checkpoint every K iterations.")
+    images_every: int = Field(1, ge=1, le=100000, description="Write renders and gradient images every K iterations "
+                                                              "(records are written every iteration).")
+    seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed of every random choice; equal seeds give equal runs.")
+
+    def fingerprint(self) -> str:
+        """Hash of everything that changes the computation (not the name): a checkpoint is only
+        loaded into the job it belongs to, and an Idempotency-Key only returns the same job."""
+        return hashlib.sha256(self.model_dump_json(exclude={"name"}).encode()).hexdigest()[:16]
+
+    @field_validator("adam_betas")
+    @classmethod
+    def _betas(cls, betas):
+        if not all(0.0 <= b < 1.0 for b in betas):
+            raise ValueError(f"adam_betas must both lie in [0, 1), got {list(betas)}")
+        return betas
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        keys = [p.key for p in self.parameters]
+        if len(set(keys)) != len(keys):
+            raise ValueError(f"parameter keys must be unique, got {keys}")
+        if isinstance(self.targets, SyntheticTargets):
+            missing = [k for k in keys if k not in self.targets.synthetic.values]
+            if missing:
+                raise ValueError(f"targets.synthetic.values has no value for {missing}")
+        return self
+

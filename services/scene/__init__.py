@@ -1,0 +1,1 @@
+"""Scenes: loading (built-in, XML with its files, dict), parameters, and what a scene contains."""

@@ -1,0 +1,1 @@
+"""The artifact store: job folders, atomic writes, images."""

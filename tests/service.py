@@ -1,0 +1,147 @@
+"""Processes for the service tests: a real Redis, real ``ndrf serve`` (uvicorn) and ``ndrf worker``."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_until(predicate, timeout: float, interval: float = 0.1, what: str = "condition"):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    raise TimeoutError(f"timed out after {timeout} s waiting for {what}")
+
+
+class RedisServer:
+    """A throw-away redis-server without persistence (so a restart loses everything)."""
+
+    def __init__(self, port: int | None = None):
+        self.port = port or free_port()
+        self.proc = None
+
+    @property
+    def url(self) -> str:
+        return f"redis://127.0.0.1:{self.port}/0"
+
+    def start(self) -> "RedisServer":
+        binary = shutil.which("redis-server")
+        if binary is None:
+            raise RuntimeError("redis-server is not installed (.ci/run installs it)")
+        self.proc = subprocess.Popen([binary, "--port", str(self.port), "--bind", "127.0.0.1", "--save", "",
+                                      "--appendonly", "no"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        import redis
+
+        wait_until(lambda: _ping(redis, self.url), 10, what="redis")
+        return self
+
+    def stop(self) -> None:
+        if self.proc is not None:
+            self.proc.kill()
+            self.proc.wait()
+            self.proc = None
+
+
+def _ping(redis, url) -> bool:
+    try:
+        return redis.Redis.from_url(url, socket_connect_timeout=0.5).ping()
+    except Exception:
+        return False
+
+
+class Process:
+    """``python -m cli.main ...`` with its output in a log file."""
+
+    def __init__(self, args: list[str], env: dict[str, str], log: Path):
+        self.log = log
+        self.proc = subprocess.Popen([sys.executable, "-m", "cli.main", *args], cwd=ROOT,
+                                     env={**os.environ, **env}, stdout=log.open("ab"), stderr=subprocess.STDOUT)
+
+    def kill(self, sig=signal.SIGKILL) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            self.proc.wait(timeout=60)
+
+    def tail(self, n=40) -> str:
+        return "\n".join(self.log.read_text(errors="replace").splitlines()[-n:])
+
+
+class Api:
+    def __init__(self, base: str, key: str | None = None):
+        self.base, self.key = base, key
+
+    def request(self, method: str, path: str, body=None, headers=None, raw: bytes | None = None):
+        data = raw if raw is not None else (json.dumps(body).encode() if body is not None else None)
+        req = urllib.request.Request(self.base + path, data=data, method=method,
+                                     headers={"Content-Type": "application/json", **(headers or {})})
+        if self.key:
+            req.add_header("Authorization", f"Bearer {self.key}")
+        try:
+            with urllib.request.urlopen(req, timeout=60) as resp:
+                return resp.status, dict(resp.headers), resp.read()
+        except urllib.error.HTTPError as err:
+            return err.code, dict(err.headers), err.read()
+
+    def json(self, method: str, path: str, body=None, headers=None):
+        status, head, data = self.request(method, path, body, headers)
+        return status, head, (json.loads(data) if data else None)
+
+    def wait_status(self, job_id: str, statuses, timeout: float):
+        def done():
+            _, _, job = self.json("GET", f"/v1/jobs/{job_id}")
+            return job if job and job["status"] in statuses else None
+        return wait_until(done, timeout, 0.2, what=f"job {job_id} in {statuses}")
+
+
+def start_api(tmp: Path, env: dict[str, str]) -> tuple[Process, Api]:
+    port = free_port()
+    proc = Process(["serve", "--port", str(port)], env, tmp / f"api-{port}.log")
+    api = Api(f"http://127.0.0.1:{port}", env.get("NDRF_API_KEYS", "").split(",")[0] or None)
+
+    def up():
+        if proc.proc.poll() is not None:
+            raise RuntimeError(f"ndrf serve exited:\n{proc.tail()}")
+        try:
+            return api.request("GET", "/healthz")[0] == 200
+        except OSError:
+            return False
+
+    wait_until(up, 60, 0.2, what="ndrf serve")
+    return proc, api
+
+
+def small_job(method="ndrf-lhs", iterations=6, **extra) -> dict:
+    job = {
+        "name": "service test",
+        "scene": {"builtin": "cornell-box"},
+        "parameters": [{"key": "red.reflectance.value", "init": [0.3, 0.3, 0.3]}],
+        "targets": {"synthetic": {"values": {"red.reflectance.value": [0.57, 0.04, 0.04]}, "spp": 16}},
+        "method": method,
+        "iterations": iterations,
+        "render": {"spp": 4, "gradient_spp": 4, "resolution": [16, 16]},
+        "training": {"residual_points": 256, "incident_samples": 4, "warmup_steps": 10, "steps_per_iteration": 2},
+        "checkpoint_every": 1,
+        "seed": 1,
+    }
+    job.update(extra)
+    return job

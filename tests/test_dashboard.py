@@ -1,0 +1,301 @@
+"""The web dashboard in a real browser: Debian's Chromium driven by Playwright against a real
+``ndrf serve`` (embedded mode, API keys on). The key prompt, the submit form and its field errors,
+the job page following the SSE stream, the gradient slider, cancel, and the live jobs list.
+
+Screenshots go to the test's tmp_path; with NDRF_UPDATE_SCREENSHOTS=1 the job page is also
+written to docs/dashboard.png for the README."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import signal
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.service import small_job, start_api
+
+CHROMIUM = Path("/usr/bin/chromium")
+ROOT = Path(__file__).resolve().parent.parent
+KEY = "dash-key"
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+FINISHED = ("succeeded", "failed", "canceled")
+
+# An uploaded scene: an include and a mesh in a sub-folder, so the paths must be kept relative to the XML.
+SCENE = """<scene version="3.0.0">
+  <include filename="materials.xml"/>
+  <sensor type="perspective">
+    <transform name="to_world"><lookat origin="0, 3, 3" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
+  </sensor>
+  <shape type="obj"><string name="filename" value="meshes/quad.obj"/><ref id="paint"/></shape>
+  <emitter type="constant"><rgb name="radiance" value="1, 1, 1"/></emitter>
+</scene>"""
+MATERIALS = """<scene version="3.0.0"><bsdf type="diffuse" id="paint"><rgb name="reflectance" value="0.3, 0.4, 0.5"/></bsdf></scene>"""
+QUAD = "v -1 0 -1\nv 1 0 -1\nv 1 0 1\nv -1 0 1\nf 1 3 2\nf 1 4 3\n"
+
+pytestmark = pytest.mark.skipif(not CHROMIUM.exists(), reason="needs Debian's Chromium at /usr/bin/chromium "
+                                                              "(apt-get install chromium)")
+
+
+@pytest.fixture(scope="module")
+def api(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("dashboard")
+    proc, api = start_api(tmp, {"NDRF_STORE": str(tmp / "store"), "NDRF_API_KEYS": KEY})
+    yield api
+    proc.kill(signal.SIGTERM)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
+        yield browser
+        browser.close()
+
+
+@pytest.fixture()
+def page(browser, api):
+    """A fresh browser context: empty sessionStorage, so the page asks for the key again."""
+    context = browser.new_context(viewport={"width": 1360, "height": 900})
+    page = context.new_page()
+    page.set_default_timeout(30_000)
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    yield page
+    context.close()
+    assert not errors, f"uncaught errors in the page: {errors}"
+
+
+def open_with_key(page, api, route: str = "/", wrong_first: bool = False):
+    """Open the dashboard; the first API call gets a 401 and the page asks for the key once."""
+    page.goto(api.base + route)
+    dialog = page.get_by_test_id("api-key-dialog")
+    dialog.wait_for(state="visible")
+    if wrong_first:                                   # refused: asked again, saying so
+        page.get_by_test_id("api-key-input").fill("not-the-key")
+        page.get_by_test_id("api-key-submit").click()
+        page.locator("#key-error").wait_for(state="visible")
+    page.get_by_test_id("api-key-input").fill(KEY)
+    page.get_by_test_id("api-key-submit").click()
+    dialog.wait_for(state="hidden")
+    assert page.evaluate("sessionStorage.getItem('ndrf.apiKey')") == KEY
+
+
+def fill_small_job(page, *, name: str, spp: str = "4", init: str = "0.3", iterations: str = "20"):
+    """The submit form, filled for a job that runs in seconds on 2 cores (cornell-box, 16x16)."""
+    page.get_by_test_id("field-scene.builtin").select_option("cornell-box")
+    row = page.locator('[data-testid=param-row][data-key="red.reflectance.value"]')
+    row.get_by_test_id("param-enable").check()
+    row.get_by_test_id("param-init").fill(init)
+    row.get_by_test_id("param-target").fill("0.57, 0.04, 0.04")
+    page.get_by_test_id("field-name").fill(name)
+    page.get_by_test_id("field-method").select_option("ndrf-lhs")
+    for path, value in {"iterations": iterations, "learning_rate": "0.05", "render.spp": spp,
+                        "render.gradient_spp": "4", "render.resolution.width": "16", "render.resolution.height": "16",
+                        "targets.synthetic.spp": "16", "training.warmup_steps": "10",
+                        "training.steps_per_iteration": "2", "training.residual_points": "256",
+                        "training.incident_samples": "4", "seed": "1"}.items():
+        page.get_by_test_id(f"field-{path}").fill(value)
+
+
+def job_page_state(page) -> dict:
+    return page.evaluate("""() => {
+        const q = (id) => document.querySelector(`[data-testid="${id}"]`);
+        return {count: Number(q('iteration-counter')?.dataset.value ?? -1),
+                points: Number(q('loss-chart')?.dataset.points ?? 0),
+                status: q('status-badge')?.textContent ?? '',
+                connection: q('connection')?.textContent ?? ''};
+    }""")
+
+
+def image_loaded(page, selector: str) -> bool:
+    return page.eval_on_selector(selector, "img => img.complete && img.naturalWidth > 0")
+
+
+def test_submit_a_job_and_watch_it_live(page, api, tmp_path):
+    open_with_key(page, api)
+    page.get_by_test_id("new-job").click()
+    page.locator('[data-testid=param-row][data-key="red.reflectance.value"]').wait_for()
+    fill_small_job(page, name="red wall")
+    page.screenshot(path=tmp_path / "submit.png", full_page=True)
+    page.get_by_test_id("submit-button").click()
+    page.wait_for_url(re.compile(r".*#/jobs/[0-9a-f]{20}$"))
+    job_id = page.url.rsplit("/", 1)[1]
+
+    # the counter and the loss curve advance as the SSE stream delivers iterations
+    seen, deadline, shot = [], time.monotonic() + 120, False
+    while time.monotonic() < deadline:
+        state = job_page_state(page)
+        seen.append(state)
+        if state["status"] in FINISHED:
+            break
+        if not shot and state["count"] >= 8:
+            page.screenshot(path=tmp_path / "job-running.png", full_page=True)
+            shot = True
+        time.sleep(0.1)
+    final = seen[-1]
+    assert final["status"] == "succeeded", final
+    live = [s for s in seen if s["status"] == "running" and s["count"] > 0]
+    counts = sorted({s["count"] for s in live})
+    assert len(counts) >= 3, f"the iteration counter did not advance while running: {counts}"
+    assert [s["count"] for s in live] == sorted(s["count"] for s in live)         # never backwards
+    assert live[-1]["points"] > live[0]["points"] >= 1                              # the loss curve grew
+    assert any(s["connection"] == "live" for s in live), "the SSE stream was never open"
+    assert final["count"] == 20 and final["points"] == 20
+    assert page.get_by_test_id("iteration-counter").text_content() == "20 / 20"
+    assert page.get_by_test_id("cancel-button").is_hidden()
+
+    # history and images: the render beside the target, the gradient of a chosen iteration
+    page.wait_for_function("document.querySelector('[data-testid=render-image]').naturalWidth > 0")
+    page.wait_for_function("document.querySelector('[data-testid=target-image]').naturalWidth > 0")
+    slider = page.get_by_test_id("iteration-slider")
+    assert slider.get_attribute("max") == "19"
+    slider.focus()
+    page.keyboard.press("Home")
+    for _ in range(3):
+        page.keyboard.press("ArrowRight")
+    assert page.get_by_test_id("slider-iteration").text_content() == "#3"
+    gradient = '[data-testid=gradient-image][data-scalar="0"]'
+    assert "/iterations/3/gradients/0.png" in page.get_attribute(gradient, "src")
+    page.wait_for_function(f"document.querySelector('{gradient}').naturalWidth > 0")
+    assert image_loaded(page, gradient) and page.locator("[data-testid=gradient-image]").count() == 3
+    assert page.locator(".colorbar-labels").first.text_content().startswith("−")
+    page.screenshot(path=tmp_path / "job-gradient-3.png", full_page=True)
+
+    # downloads authenticate by URL (?access_token=) like the images and the event stream
+    link = page.locator("[data-testid=downloads] a", has_text="Latest checkpoint")
+    response = page.request.get(link.evaluate("a => a.href"))
+    assert response.status == 200 and len(response.body()) > 1000
+    npy = page.locator('[data-testid=gradient-image][data-scalar="1"] ~ a[data-role=npy]')
+    response = page.request.get(npy.evaluate("a => a.href"))
+    assert response.status == 200 and response.body()[:6] == b"\x93NUMPY"
+    assert job_id in page.get_by_test_id("downloads").inner_html()
+
+    # reload: history comes from GET /iterations, the same state
+    page.reload()
+    page.wait_for_function("document.querySelector('[data-testid=loss-chart]')?.dataset.points === '20'")
+    assert job_page_state(page)["count"] == 20
+
+    assert page.get_by_test_id("slider-iteration").text_content() == "#19 (latest)"
+    page.evaluate("window.scrollTo(0, 0)")
+    page.mouse.move(0, 0)
+    page.wait_for_function("[...document.querySelectorAll('[data-testid=gradient-image]')].every(i => i.naturalWidth > 0)")
+    page.screenshot(path=tmp_path / "job.png", full_page=True)
+    docs = ROOT / "docs" if os.environ.get("NDRF_UPDATE_SCREENSHOTS") else tmp_path / "docs"
+    docs.mkdir(exist_ok=True)
+    page.set_viewport_size({"width": 1360, "height": 1330})
+    page.screenshot(path=docs / "dashboard.png")
+    if docs != tmp_path / "docs":
+        shutil.copy(docs / "dashboard.png", tmp_path / "dashboard.png")
+
+    # the jobs list shows the job, finished, with its final error against the synthetic target
+    page.get_by_test_id("nav-jobs").click()
+    row = page.locator(f'[data-testid=job-row][data-job-id="{job_id}"]')
+    row.wait_for()
+    assert row.get_attribute("data-status") == "succeeded"
+    assert row.get_by_test_id("job-progress").text_content() == "20 / 20"
+    assert re.search(r"\d", row.locator("td").nth(8).text_content())
+    page.screenshot(path=tmp_path / "jobs.png", full_page=True)
+
+
+def test_a_refused_job_shows_each_error_next_to_its_field(page, api, tmp_path):
+    jobs_before = len(api.json("GET", "/v1/jobs")[2]["items"])
+    open_with_key(page, api, "/#/submit", wrong_first=True)
+    page.locator('[data-testid=param-row][data-key="red.reflectance.value"]').wait_for()
+
+    fill_small_job(page, name="bad spp", spp="0")                     # schema: render.spp >= 1
+    page.get_by_test_id("submit-button").click()
+    error = page.locator('[data-testid=field-error][data-for="render.spp"]')
+    error.wait_for(state="visible")
+    assert "greater than or equal to 1" in error.text_content()
+    assert "has-error" in page.locator('.field[data-field="render.spp"]').get_attribute("class")
+    wrapper = page.locator('.field[data-field="render.spp"]')                     # next to its input
+    assert wrapper.get_by_test_id("field-render.spp").count() == 1 and wrapper.get_by_test_id("field-error").is_visible()
+    assert page.get_by_test_id("form-banner").is_visible()
+    page.screenshot(path=tmp_path / "error-spp.png", full_page=True)
+
+    page.get_by_test_id("field-render.spp").fill("4")                 # preflight: 2 values for an RGB
+    row = page.locator('[data-testid=param-row][data-key="red.reflectance.value"]')
+    row.get_by_test_id("param-init").fill("0.1, 0.2")
+    page.get_by_test_id("submit-button").click()
+    error = row.locator('[data-testid=field-error][data-for="parameters[0].init"]')
+    error.wait_for(state="visible")
+    assert "has 2 values" in error.text_content()
+    assert page.locator('[data-testid=field-error][data-for="render.spp"]').is_hidden()
+    page.screenshot(path=tmp_path / "error-init.png", full_page=True)
+
+    assert "#/submit" in page.url
+    assert len(api.json("GET", "/v1/jobs")[2]["items"]) == jobs_before           # nothing was queued
+
+
+def test_cancel_a_long_job_from_its_page(page, api, tmp_path):
+    _, _, accepted = api.json("POST", "/v1/jobs", small_job(iterations=2000, name="long run"))
+    job_id = accepted["id"]
+    open_with_key(page, api)
+
+    # the jobs list updates without a reload
+    progress = page.locator(f'[data-testid=job-row][data-job-id="{job_id}"] [data-testid=job-progress]')
+    progress.wait_for()
+    first = int(progress.text_content().split("/")[0])
+    page.wait_for_function(f"""() => {{
+        const el = document.querySelector('[data-job-id="{job_id}"] [data-testid=job-progress]');
+        return el && parseInt(el.textContent) >= {first} + 2;
+    }}""", timeout=90_000)
+
+    page.locator(f'[data-testid=job-row][data-job-id="{job_id}"] a.job-name').click()
+    page.wait_for_url(f"**/#/jobs/{job_id}")
+    page.wait_for_function("Number(document.querySelector('[data-testid=iteration-counter]')?.dataset.value) >= 2")
+    assert page.get_by_test_id("status-badge").text_content() == "running"
+    page.get_by_test_id("cancel-button").click()
+    page.wait_for_function("document.querySelector('[data-testid=status-badge]')?.textContent === 'canceled'",
+                           timeout=60_000)
+    assert page.get_by_test_id("cancel-button").is_hidden()
+    page.screenshot(path=tmp_path / "canceled.png", full_page=True)
+    job = api.json("GET", f"/v1/jobs/{job_id}")[2]
+    assert job["status"] == "canceled" and 2 <= job["iteration"] + 1 < 2000
+    assert page.get_by_test_id("iteration-counter").get_attribute("data-value") == str(job["iteration"] + 1)
+
+
+def test_upload_a_scene_folder_and_a_target_photograph(page, api, tmp_path):
+    import numpy as np
+    from PIL import Image
+
+    folder = tmp_path / "my-scene"
+    (folder / "meshes").mkdir(parents=True)
+    (folder / "scene.xml").write_text(SCENE)
+    (folder / "materials.xml").write_text(MATERIALS)
+    (folder / "meshes" / "quad.obj").write_text(QUAD)
+    photo = tmp_path / "photo.png"
+    Image.fromarray(np.full((16, 16, 3), 120, np.uint8)).save(photo)
+
+    open_with_key(page, api, "/#/submit")
+    page.get_by_test_id("scene-mode-upload").check()
+    page.get_by_test_id("field-scene.folder").set_input_files(folder)      # webkitRelativePath: my-scene/...
+    row = page.locator('[data-testid=param-row][data-key="paint.reflectance.value"]')
+    row.wait_for()
+    assert page.get_by_test_id("field-scene.xml").input_value() == "my-scene/scene.xml"
+    assert "meshes/quad.obj" in page.locator('[data-field="scene.files"]').text_content()
+    row.get_by_test_id("param-enable").check()
+    row.get_by_test_id("param-init").fill("0.5")
+    page.get_by_test_id("target-mode-images").check()
+    page.get_by_test_id("target-image-0").set_input_files(photo)
+    page.get_by_test_id("field-method").select_option("direct")
+    for path, value in {"iterations": "3", "render.spp": "4", "render.gradient_spp": "4"}.items():
+        page.get_by_test_id(f"field-{path}").fill(value)
+    page.screenshot(path=tmp_path / "upload.png", full_page=True)
+    page.get_by_test_id("submit-button").click()
+    page.wait_for_url(re.compile(r".*#/jobs/[0-9a-f]{20}$"))
+    page.wait_for_function("document.querySelector('[data-testid=status-badge]')?.textContent === 'succeeded'",
+                           timeout=60_000)
+    page.wait_for_function("document.querySelector('[data-testid=target-image]').naturalWidth === 16")
+    job = api.json("GET", f"/v1/jobs/{page.url.rsplit('/', 1)[1]}")[2]
+    assert job["scene"] == "xml" and job["method"] == "direct" and job["target"] is None
+    assert page.get_by_test_id("parameter-error").text_content() == "—"               # no known target
+    page.screenshot(path=tmp_path / "upload-job.png", full_page=True)

@@ -1,0 +1,1 @@
+"""The queue consumer: ``ndrf worker`` (Redis) or threads inside ``ndrf serve`` (embedded)."""
