@@ -2,7 +2,7 @@
 
 Cornell box, 64x64, ``red.reflectance.value``: relative L2 error ||g - g_ref|| / ||g_ref|| of the
 gradient images (all three scalars) against ``prb`` at 4096 spp (depth 12, no Russian roulette).
-Fields trained for ``STEPS`` steps with the default configuration (about 3 minutes here; the
+Fields trained for ``STEPS`` steps with the default configuration (about 2 minutes here; the
 bench reports the time). Tolerances are the issue's targets:
 
     ndrf-lhs < 0.10, ndrf-rhs < 0.20 (16 spp query), radiance-cache and direct > 0.35,
@@ -20,7 +20,7 @@ import pytest
 
 pytestmark = pytest.mark.slow
 
-STEPS = 400
+STEPS = 300
 
 
 def _relative(g, ref, where=None):

@@ -47,7 +47,7 @@ def api(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("dashboard")
     proc, api = start_api(tmp, {"NDRF_STORE": str(tmp / "store"), "NDRF_API_KEYS": KEY})
     yield api
-    proc.kill(signal.SIGTERM)
+    proc.kill(signal.SIGKILL)
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 
 from tests.service import small_job, start_api
 
-EXAMPLES_PER_OPERATION = 15
+EXAMPLES_PER_OPERATION = 10
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +26,7 @@ def served(tmp_path_factory):
     _, _, accepted = api.json("POST", "/v1/jobs", small_job("direct", iterations=2))
     api.wait_status(accepted["id"], {"succeeded"}, 120)
     yield api, accepted["id"]
-    proc.kill(signal.SIGTERM)
+    proc.kill(signal.SIGKILL)
 
 
 def test_no_operation_answers_with_a_server_error(served):
@@ -48,5 +48,5 @@ def test_no_operation_answers_with_a_server_error(served):
                 failures.append(f"{case.method} {case.formatted_path}: {response.status_code} {response.text[:300]}")
 
         check()
-    assert calls["n"] > 80
+    assert calls["n"] > 80, calls
     assert not failures, "\n".join(failures[:10])

@@ -108,9 +108,9 @@ def test_unreachable_parameter_is_dropped_and_really_has_zero_gradient(mi):
 @pytest.mark.slow
 def test_merged_channels_carry_the_same_gradient(mi):
     keys = ["red.reflectance.value"]
-    _, merged_trainer, merged = gradient(mi, "cornell-box", keys, "ndrf-lhs", steps=150)
+    _, merged_trainer, merged = gradient(mi, "cornell-box", keys, "ndrf-lhs", steps=100)
     _, full_trainer, full = gradient(mi, "cornell-box", keys, "ndrf-lhs", EffectOverrides(merge_channels=False),
-                                     steps=150)
+                                     steps=100)
     assert merged_trainer.differential.channels == 3 and full_trainer.differential.channels == 9
     for p in range(3):
         others = [c for c in range(3) if c != p]

@@ -52,7 +52,7 @@ def api(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("validation")
     proc, api = start_api(tmp, {"NDRF_STORE": str(tmp / "store"), **CAPS})
     yield api
-    proc.kill(signal.SIGTERM)
+    proc.kill(signal.SIGKILL)
 
 
 def expect_problem(api, job, status, field_fragment, message_fragment=""):
