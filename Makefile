@@ -8,7 +8,7 @@ BIN := $(VENV)/bin
 LLVM := /usr/lib/x86_64-linux-gnu/libLLVM-19.so
 export DRJIT_LIBLLVM_PATH ?= $(LLVM)
 
-.PHONY: install system-deps demo test test-fast clean
+.PHONY: install system-deps demo test test-fast bench clean
 
 system-deps:
 	@if [ ! -e "$(LLVM)" ]; then \
@@ -35,6 +35,10 @@ test: install
 
 test-fast: install
 	$(BIN)/python -m pytest -m "not slow"
+
+bench: install
+	$(BIN)/pip install -q -e '.[dev,bench]'
+	$(BIN)/python -m bench --quick
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

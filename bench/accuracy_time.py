@@ -26,9 +26,9 @@ def run(quick: bool) -> dict:
     from services.estimators.methods import make_method
     from services.estimators.training import FieldTrainer
 
-    reference_spp = 1024 if quick else 4096
+    reference_spp = 512 if quick else 4096
     sample_spp = [1, 4, 16, 64] if quick else [1, 4, 16, 64, 256, 1024]
-    checkpoints = [50, 150, 400] if quick else [50, 100, 200, 400, 800]
+    checkpoints = [50, 200] if quick else [50, 100, 200, 400, 800]
     query_spp = {"ndrf-lhs": [1, 16], "ndrf-rhs": [4, 16, 64], "radiance-cache": [4, 16, 64]}
     if quick:
         query_spp = {"ndrf-lhs": [4], "ndrf-rhs": [16], "radiance-cache": [16]}

@@ -23,8 +23,8 @@ def run(quick: bool) -> dict:
     base = json.loads((ROOT / "examples" / "hidden-object.json").read_text())
     base.update(images_every=1000, checkpoint_every=1000)
     if quick:
-        base.update(iterations=20, render={"spp": 16, "resolution": [48, 48]},
-                    training={"warmup_steps": 200, "steps_per_iteration": 8})
+        base.update(iterations=8, render={"spp": 16, "resolution": [32, 32]},
+                    training={"warmup_steps": 100, "steps_per_iteration": 4})
     out = {}
     for method in ("ndrf-rhs", "ndrf-lhs", "prb", "radiance-cache", "direct"):
         log.info("end to end: %s", method)

@@ -74,14 +74,17 @@ def accuracy_table(results: dict) -> str:
 def depth_plot(data: dict, path: Path) -> None:
     plt = _plt()
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.8))
-    for method in ("prb", "ndrf-rhs"):
-        rows = [r for r in data["rows"] if r["method"] == method]
-        left.plot([r["depth"] for r in rows], [r["seconds"] for r in rows], "-o", color=COLORS[method], label=method)
-        right.plot([r["depth"] for r in rows], [r["error"] for r in rows], "-o", color=COLORS[method], label=method)
+    rows = [r for r in data["rows"] if r["method"] == "prb"]
+    left.plot([r["depth"] for r in rows], [r["seconds"] for r in rows], "-o", color=COLORS["prb"], label="prb")
+    right.plot([r["depth"] for r in rows], [r["sum_error"] for r in rows], "-o", color=COLORS["prb"], label="prb")
+    for r in (r for r in data["rows"] if r["method"] == "ndrf-rhs"):     # no depth parameter: one measurement
+        label = "ndrf-rhs (no max depth; one measurement)"
+        left.axhline(r["seconds"], color=COLORS["ndrf-rhs"], ls="--", label=label)
+        right.axhline(r["sum_error"], color=COLORS["ndrf-rhs"], ls="--", label=label)
     left.set_xlabel("max path depth")
     left.set_ylabel("seconds per iteration (gradient)")
     right.set_xlabel("max path depth")
-    right.set_ylabel("relative error vs prb at depth 64")
+    right.set_ylabel("rel. error of pixel-summed dI/dp\nvs prb at depth 64")
     right.set_yscale("log")
     for ax in (left, right):
         ax.grid(True, alpha=0.25)
@@ -93,8 +96,10 @@ def depth_plot(data: dict, path: Path) -> None:
 
 
 def depth_table(data: dict) -> str:
-    rows = [[r["method"], r["depth"], r["seconds"], r["error"]] for r in data["rows"]]
-    return markdown_table(["method", "max depth", "seconds / iteration", "rel. error"], rows)
+    rows = [[r["method"], "none (one bounce + fields)" if r["depth"] is None else r["depth"], r["seconds"], r["error"],
+             r["sum_error"], r.get("note", f"{data['spp']}-spp gradient")] for r in data["rows"]]
+    return markdown_table(["method", "max depth", "seconds / iteration", "rel. error (images)",
+                           "rel. error (pixel sum)", "what an iteration is"], rows)
 
 
 def scaling_plot(data: dict, path: Path) -> None:

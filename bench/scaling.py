@@ -1,7 +1,7 @@
 """Training-step time and peak memory against the number of optimized scalars (1..64).
 
 The parameter is a single-channel bitmap texture on the back wall of the Cornell box with
-1, 4, 16 or 64 texels; the output layer of ``dL_theta`` grows with the scalars (3 outputs per
+4, 9, 16, 36 or 64 texels; the output layer of ``dL_theta`` grows with the scalars (3 outputs per
 texel: a grey texel changes all three channels). Each size runs in its own process so that the
 peak resident memory is that of the size alone.
 """
@@ -47,7 +47,7 @@ def measure(side: int, steps: int) -> dict:
     from services.scene.planner import plan_effects
 
     scene = load_scene(mitsuba_dict=textured_box(side), resolution=(64, 64))
-    prob = Problem(scene, ParameterSet(scene.params, ["poster.reflectance.data"]))
+    prob = Problem(scene, ParameterSet(scene.params, ["back.bsdf.reflectance.data"]))
     prob.apply_plan(plan_effects(probe_scene(scene, prob.parameters), "ndrf-rhs"))
     trainer = FieldTrainer(prob, TrainingConfig(), radiance=True, differential=True, seed=0)
     trainer.train(5)                                          # compile and warm up outside the clock
@@ -61,7 +61,7 @@ def measure(side: int, steps: int) -> dict:
 
 def run(quick: bool) -> dict:
     rows = []
-    for side in (1, 2, 4, 8):
+    for side in (2, 3, 4, 6, 8):                              # 4 to 64 scalars (Mitsuba widens a 1x1 bitmap)
         log.info("scaling: %d scalars", side * side)
         code = f"import json, bench.scaling as s; print(json.dumps(s.measure({side}, {15 if quick else 40})))"
         result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
