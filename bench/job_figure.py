@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.report import _plt
+from bench.report import _plt, save
 from services.store.layout import JobFolder
 
 CHANNEL_COLORS = ("#dc2626", "#16a34a", "#2563eb")
@@ -67,9 +67,7 @@ def job_figure(folders: list[Path], out: Path) -> None:
     ax.set_title("parameter values (dashed: target)", fontsize=9)
     ax.grid(True, alpha=0.25)
     ax.legend(fontsize=7, ncol=len(jobs), loc="center right")
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
+    save(fig, out)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -31,6 +31,12 @@ def _plt():
     return plt
 
 
+def save(fig, path: Path) -> None:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    _plt().close(fig)
+
+
 def accuracy_plot(results: dict, path: Path) -> None:
     plt = _plt()
     scenes = list(results)
@@ -52,9 +58,7 @@ def accuracy_plot(results: dict, path: Path) -> None:
         ax.set_ylabel("relative L2 error of dI/dp vs prb")
         ax.grid(True, which="both", alpha=0.25)
         ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path)
 
 
 def accuracy_table(results: dict) -> str:
@@ -90,9 +94,7 @@ def depth_plot(data: dict, path: Path) -> None:
         ax.grid(True, alpha=0.25)
         ax.legend(fontsize=8)
     fig.suptitle("hidden-object (closed room): cost and error against path length", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path)
 
 
 def depth_table(data: dict) -> str:
@@ -117,9 +119,7 @@ def scaling_plot(data: dict, path: Path) -> None:
     left.set_ylabel("seconds")
     left.legend(fontsize=8)
     right.set_ylabel("peak resident memory (MiB)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path)
 
 
 def scaling_table(data: dict) -> str:
@@ -139,9 +139,7 @@ def e2e_plot(data: dict, path: Path) -> None:
     ax.set_title("hidden-object: inverse rendering, error against time", fontsize=10)
     ax.grid(True, alpha=0.25)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path)
 
 
 def e2e_table(data: dict) -> str:

@@ -145,3 +145,17 @@ def small_job(method="ndrf-lhs", iterations=6, **extra) -> dict:
     }
     job.update(extra)
     return job
+
+
+# An uploaded scene: an include and a mesh in a sub-folder, so the paths must be kept relative to the XML.
+SCENE = """<scene version="3.0.0">
+  <include filename="materials.xml"/>
+  <sensor type="perspective">
+    <transform name="to_world"><lookat origin="0, 3, 3" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
+  </sensor>
+  <shape type="obj"><string name="filename" value="meshes/quad.obj"/><ref id="paint"/></shape>
+  <emitter type="constant"><rgb name="radiance" value="1, 1, 1"/></emitter>
+</scene>"""
+MATERIALS = """<scene version="3.0.0"><bsdf type="diffuse" id="paint"><rgb name="reflectance" value="0.3, 0.4, 0.5"/></bsdf></scene>"""
+QUAD = "v -1 0 -1\nv 1 0 -1\nv 1 0 1\nv -1 0 1\nf 1 3 2\nf 1 4 3\n"

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.service import small_job, start_api
+from tests.service import MATERIALS, QUAD, SCENE, small_job, start_api
 
 CHROMIUM = Path("/usr/bin/chromium")
 ROOT = Path(__file__).resolve().parent.parent
@@ -25,18 +25,6 @@ ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-f
         "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 FINISHED = ("succeeded", "failed", "canceled")
 
-# An uploaded scene: an include and a mesh in a sub-folder, so the paths must be kept relative to the XML.
-SCENE = """<scene version="3.0.0">
-  <include filename="materials.xml"/>
-  <sensor type="perspective">
-    <transform name="to_world"><lookat origin="0, 3, 3" target="0, 0, 0" up="0, 1, 0"/></transform>
-    <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
-  </sensor>
-  <shape type="obj"><string name="filename" value="meshes/quad.obj"/><ref id="paint"/></shape>
-  <emitter type="constant"><rgb name="radiance" value="1, 1, 1"/></emitter>
-</scene>"""
-MATERIALS = """<scene version="3.0.0"><bsdf type="diffuse" id="paint"><rgb name="reflectance" value="0.3, 0.4, 0.5"/></bsdf></scene>"""
-QUAD = "v -1 0 -1\nv 1 0 -1\nv 1 0 1\nv -1 0 1\nf 1 3 2\nf 1 4 3\n"
 
 pytestmark = pytest.mark.skipif(not CHROMIUM.exists(), reason="needs Debian's Chromium at /usr/bin/chromium "
                                                               "(apt-get install chromium)")

@@ -11,7 +11,6 @@ import sys
 import time
 
 import numpy as np
-import pytest
 
 SMALL_TRAINING = {"residual_points": 512, "incident_samples": 4, "warmup_steps": 10, "steps_per_iteration": 2}
 

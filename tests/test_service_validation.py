@@ -10,22 +10,11 @@ import signal
 import numpy as np
 import pytest
 
-from tests.service import small_job, start_api
+from tests.service import MATERIALS, QUAD, SCENE, small_job, start_api
 
 CAPS = {"NDRF_MAX_UPLOAD_BYTES": "400000", "NDRF_MAX_RESOLUTION": "128", "NDRF_MAX_SPP": "256",
         "NDRF_MAX_ITERATIONS": "100", "NDRF_MAX_PARAMETERS": "6", "NDRF_MAX_MESH_BYTES": "20000"}
 
-QUAD = b"v -1 0 -1\nv 1 0 -1\nv 1 0 1\nv -1 0 1\nf 1 3 2\nf 1 4 3\n"
-SCENE = """<scene version="3.0.0">
-  <include filename="materials.xml"/>
-  <sensor type="perspective">
-    <transform name="to_world"><lookat origin="0, 3, 3" target="0, 0, 0" up="0, 1, 0"/></transform>
-    <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
-  </sensor>
-  <shape type="obj"><string name="filename" value="meshes/quad.obj"/><ref id="paint"/></shape>
-  <emitter type="constant"><rgb name="radiance" value="1, 1, 1"/></emitter>
-</scene>"""
-MATERIALS = """<scene version="3.0.0"><bsdf type="diffuse" id="paint"><rgb name="reflectance" value="0.3, 0.4, 0.5"/></bsdf></scene>"""
 
 
 def b64(data: bytes | str) -> str:

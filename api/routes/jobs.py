@@ -9,7 +9,7 @@ import threading
 from pathlib import Path
 from typing import Annotated
 
-from fastapi import APIRouter, Header, Query, Request, Response
+from fastapi import APIRouter, Header, Query, Response
 
 from api.deps import Authenticated, RuntimeDep
 from api.problems import Problem, ProblemError
