@@ -16,7 +16,6 @@ import logging
 
 from bench.common import problem, relative_error, timed
 
-
 log = logging.getLogger(__name__)
 
 

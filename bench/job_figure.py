@@ -4,9 +4,9 @@
 
 Each argument is a job folder (``ndrf run ... --out DIR`` or the service's store). The first row
 shows the first job's target image and, per job, its iteration-0 gradient image dI/dp of the first
-scalar (diverging colour map, one shared scale clipped at the 99th percentile, so a zero gradient is
-visibly white); the second
-row plots every job's parameter values against the iteration, with the synthetic target dashed.
+scalar (diverging colour map, one shared scale clipped at the 99th percentile, so a zero gradient
+is visibly white); the second row plots every job's parameter values against the iteration, with
+the synthetic target dashed.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.report import _plt, save
+from bench.report import pyplot, save
 from services.store.layout import JobFolder
 
 CHANNEL_COLORS = ("#dc2626", "#16a34a", "#2563eb")
@@ -30,8 +30,9 @@ def _trajectory(folder: JobFolder) -> tuple[np.ndarray, np.ndarray]:
 
 
 def job_figure(folders: list[Path], out: Path) -> None:
-    plt = _plt()
+    plt = pyplot()
     jobs = [JobFolder(f) for f in folders]
+    specs = [job.read("spec.json") for job in jobs]
     first = jobs[0]
     gradients = [np.load(j.iteration_dir(j.iterations()[0]) / "gradients.npy")[0].sum(axis=-1) for j in jobs]
     scale = max(float(np.percentile(np.abs(g), 99)) for g in gradients) or 1.0    # robust to fireflies
@@ -43,27 +44,24 @@ def job_figure(folders: list[Path], out: Path) -> None:
     ax.imshow(np.clip(target / max(np.percentile(target, 99.5), 1e-8), 0, 1) ** (1 / 2.2))
     ax.set_title("target", fontsize=9)
     ax.axis("off")
-    for i, (job, g) in enumerate(zip(jobs, gradients)):
+    for i, (spec, g) in enumerate(zip(specs, gradients)):
         ax = fig.add_subplot(grid[0, i + 1])
         ax.imshow(g, cmap="RdBu_r", vmin=-scale, vmax=scale)
-        method = job.read("spec.json")["method"]
-        ax.set_title(f"{method}: dI/dp[0], iteration 0\nmax |.| = {np.abs(g).max():.2e}", fontsize=9)
+        ax.set_title(f"{spec['method']}: dI/dp[0], iteration 0\nmax |.| = {np.abs(g).max():.2e}", fontsize=9)
         ax.axis("off")
 
     ax = fig.add_subplot(grid[1, :])
-    spec = first.read("spec.json")
     target_values = np.asarray(first.read("summary.json").get("target") or [], dtype=float)
     styles = ("-", ":", "-.", "--")
-    for j, job in enumerate(jobs):
+    for j, (job, spec) in enumerate(zip(jobs, specs)):
         k, values = _trajectory(job)
-        method = job.read("spec.json")["method"]
         for c in range(values.shape[1]):
             ax.plot(k, values[:, c], styles[j % len(styles)], color=CHANNEL_COLORS[c % 3], lw=1.6,
-                    label=f"{method} [{c}]")
+                    label=f"{spec['method']} [{c}]")
     for c, value in enumerate(target_values):
         ax.axhline(value, color=CHANNEL_COLORS[c % 3], lw=0.8, ls="--", alpha=0.6)
     ax.set_xlabel("iteration")
-    ax.set_ylabel(spec["parameters"][0]["key"])
+    ax.set_ylabel(specs[0]["parameters"][0]["key"])
     ax.set_title("parameter values (dashed: target)", fontsize=9)
     ax.grid(True, alpha=0.25)
     ax.legend(fontsize=7, ncol=len(jobs), loc="center right")

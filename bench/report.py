@@ -22,7 +22,7 @@ def pareto(points: list[dict]) -> list[dict]:
     return front
 
 
-def _plt():
+def pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
@@ -34,11 +34,11 @@ def _plt():
 def save(fig, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    _plt().close(fig)
+    pyplot().close(fig)
 
 
 def accuracy_plot(results: dict, path: Path) -> None:
-    plt = _plt()
+    plt = pyplot()
     scenes = list(results)
     fig, axes = plt.subplots(1, len(scenes), figsize=(5.2 * len(scenes), 4.2), squeeze=False)
     for ax, scene in zip(axes[0], scenes):
@@ -76,7 +76,7 @@ def accuracy_table(results: dict) -> str:
 
 
 def depth_plot(data: dict, path: Path) -> None:
-    plt = _plt()
+    plt = pyplot()
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.8))
     rows = [r for r in data["rows"] if r["method"] == "prb"]
     left.plot([r["depth"] for r in rows], [r["seconds"] for r in rows], "-o", color=COLORS["prb"], label="prb")
@@ -105,7 +105,7 @@ def depth_table(data: dict) -> str:
 
 
 def scaling_plot(data: dict, path: Path) -> None:
-    plt = _plt()
+    plt = pyplot()
     rows = data["rows"]
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.6))
     x = [r["scalars"] for r in rows]
@@ -129,7 +129,7 @@ def scaling_table(data: dict) -> str:
 
 
 def e2e_plot(data: dict, path: Path) -> None:
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
     for method, run in data.items():
         curve = run["curve"]

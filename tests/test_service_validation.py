@@ -16,7 +16,6 @@ CAPS = {"NDRF_MAX_UPLOAD_BYTES": "400000", "NDRF_MAX_RESOLUTION": "128", "NDRF_M
         "NDRF_MAX_ITERATIONS": "100", "NDRF_MAX_PARAMETERS": "6", "NDRF_MAX_MESH_BYTES": "20000"}
 
 
-
 def b64(data: bytes | str) -> str:
     return base64.b64encode(data.encode() if isinstance(data, str) else data).decode()
 
