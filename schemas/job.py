@@ -9,19 +9,19 @@ is reported instead of silently ignored.
 from __future__ import annotations
 
 import hashlib
-from typing import Literal, Union
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from schemas.methods import METHOD_HELP, Method
 from schemas.solver import TrainingConfig
-
-#: Public names of the gradient methods (see services.estimators.gradients).
-MethodName = Literal["ndrf-lhs", "ndrf-rhs", "radiance-cache", "direct", "prb"]
-METHOD_NAMES: tuple[str, ...] = ("ndrf-lhs", "ndrf-rhs", "radiance-cache", "direct", "prb")
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """Unknown fields are errors, and so are NaN and Infinity in any number (JSON has neither;
+    Python's parser accepts them, and a NaN would otherwise be stored as null)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 # ------------------------------------------------------------------------------------ scene
@@ -47,12 +47,12 @@ class PathScene(_Strict):
     path: str = Field(description="Path of the XML file, relative to the job file.", min_length=1)
 
 
-SceneSpec = Union[BuiltinScene, XmlScene, PathScene]
+SceneSpec = BuiltinScene | XmlScene | PathScene
 
 
 # ------------------------------------------------------------------------------- parameters
 
-Scalars = Union[float, list[float]]
+Scalars = float | list[float]
 
 
 class ParameterSpec(_Strict):
@@ -80,6 +80,10 @@ class SyntheticTarget(_Strict):
 
     values: dict[str, Scalars] = Field(description="Parameter values of the target, by key.")
     spp: int = Field(256, ge=1, le=65536, description="Samples per pixel of the target rendering.")
+    max_depth: int | None = Field(
+        None, ge=1, le=1024, description="Path depth of the target rendering. Default: deep enough that the "
+                                         "image has converged (measured on the scene, as a photograph has all "
+                                         "bounces); the plan reports the depth used.")
 
 
 class ImageTarget(_Strict):
@@ -99,7 +103,7 @@ class ImageTargets(_Strict):
                                                   "(losses are summed).", min_length=1, max_length=64)
 
 
-TargetSpec = Union[SyntheticTargets, ImageTargets]
+TargetSpec = SyntheticTargets | ImageTargets
 
 
 # ----------------------------------------------------------------------------------- render
@@ -112,8 +116,20 @@ class RenderSpec(_Strict):
                               description="Samples per pixel of the gradient query (camera rays for ndrf-*, "
                                           "radiance-cache and direct; paths for prb).")
     resolution: tuple[int, int] | None = Field(None, description="[width, height] overriding the scene's film.")
-    max_depth: int = Field(12, ge=1, le=64, description="Maximum path depth of the path-traced candidate, the "
-                                                         "synthetic target and the prb reference.")
+    max_depth: int | None = Field(
+        None, ge=1, le=1024, description="Path depth of the path-traced candidate and of prb. Default: the depth at "
+                                         "which the scene's image has converged (measured at the initial and target "
+                                         "parameters; the plan reports it), so that the candidate has every bounce a "
+                                         "photograph has.")
+    candidate: Literal["path", "field"] = Field(
+        "path", description="How the candidate image is formed (Sec. 5, step 2): 'path' path-traces it with spp "
+                            "samples and render.max_depth bounces; 'field' evaluates emission + L_phi at the camera's "
+                            "first hits, cached once per job at gradient_spp fixed samples per pixel: no path "
+                            "tracing, every bounce (L_phi holds them), biased by the field's error.")
+    first_hits: Literal["fresh", "cached"] = Field(
+        "fresh", description="'cached': trace the camera rays' first hits once per job at gradient_spp fixed "
+                             "samples per pixel (geometry is fixed) and let ndrf-lhs query dL_theta there every "
+                             "iteration, contracting dz/dy per ray; 'fresh': new camera samples every iteration.")
 
     @field_validator("resolution")
     @classmethod
@@ -154,7 +170,7 @@ class JobSpec(_Strict):
     scene: SceneSpec = Field(description="The scene: {'builtin': NAME} or {'xml': ..., 'files': {...}}.")
     parameters: list[ParameterSpec] = Field(min_length=1, max_length=64, description="Parameters to recover.")
     targets: TargetSpec = Field(description="{'synthetic': {...}} or {'images': [...]}.")
-    method: MethodName = Field("ndrf-rhs", description="Gradient method.")
+    method: Method = Field(Method.NDRF_RHS, description=METHOD_HELP)
     iterations: int = Field(60, ge=1, le=100000, description="Optimization iterations.")
     learning_rate: float = Field(0.05, gt=0, le=100.0, description="Adam learning rate of the scene parameters.")
     adam_betas: tuple[float, float] = Field(

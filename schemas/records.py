@@ -1,13 +1,90 @@
-"""What the API returns about jobs (the job record of the store, as the public sees it)."""
+"""Records of jobs: the job record the store keeps (owned by ``services.jobs.state``), the record
+the loop writes per iteration, and what the API returns.
+
+``JobRecord`` is the only description of a job's state; the store keeps it as ``record.json`` and
+:class:`services.jobs.state.JobStates` is the only code that writes it.
+"""
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from enum import StrEnum
+from typing import Any
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
-JobStatus = Literal["queued", "running", "succeeded", "failed", "canceled"]
-FINISHED: frozenset[str] = frozenset({"succeeded", "failed", "canceled"})
+
+class JobStatus(StrEnum):
+    """``queued -> running -> succeeded | failed | canceled``; a running job whose worker stops
+    goes back to ``queued`` (it resumes from its checkpoint)."""
+
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELED = "canceled"
+
+    @property
+    def finished(self) -> bool:
+        return self in FINISHED
+
+
+FINISHED: frozenset[JobStatus] = frozenset({JobStatus.SUCCEEDED, JobStatus.FAILED, JobStatus.CANCELED})
+ACTIVE: frozenset[JobStatus] = frozenset({JobStatus.QUEUED, JobStatus.RUNNING})
+
+
+class JobRecord(BaseModel):
+    """A job's state in the store. Written only through ``services.jobs.state.JobStates``."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    id: str
+    name: str | None = None
+    owner: str = Field("anonymous", description="Id of the API key that created the job ('anonymous' without keys).")
+    status: JobStatus
+    method: str
+    scene: str
+    created: str
+    updated: str
+    started: str | None = None
+    finished: str | None = None
+    iteration: int | None = Field(None, description="Last completed iteration.")
+    iterations: int
+    attempts: int = Field(0, description="Attempts started so far.")
+    attempt: str | None = Field(None, description="Id of the attempt that owns the job (the fence).")
+    crashes: int = Field(0, description="Attempts that ended without reporting (their process died).")
+    worker: str | None = None
+    error: str | None = None
+    field: str | None = None
+    cancel_requested: bool = False
+    idempotency_key: str | None = None
+    fingerprint: str | None = None
+    experiment: str | None = Field(None, description="Id of the experiment this job is a run of.")
+    varied: dict[str, Any] | None = Field(None, description="The experiment's varied fields and their values.")
+
+
+class IterationRecord(BaseModel):
+    """One iteration of the loop (Sec. 5), as the loop writes it and the API returns it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    iteration: int = Field(description="0-based iteration index.")
+    loss: float | None = Field(description="Image loss z(y), summed over sensors.")
+    parameters: list[float] = Field(description="Parameters at which loss and gradient were evaluated.")
+    updated_parameters: list[float] = Field(description="Parameters after the Adam step and projection.")
+    dz_dp: list[float] = Field(description="Gradient of the loss w.r.t. every scalar (Eq. 10).")
+    learning_rate: float = Field(description="Adam learning rate of this step.")
+    seconds: dict[str, float] = Field(description="Seconds per phase: training (the fields), gradient (candidate, "
+                                                  "loss and dz/dp: the step itself), images (per-scalar gradient "
+                                                  "images, on iterations that write them).")
+    sanitized: dict[str, int] = Field(default_factory=dict,
+                                      description="Lanes or steps whose non-finite values were zeroed or skipped, "
+                                                  "by where (cumulative over the run).")
+    training_steps: int = Field(0, description="Training steps of the fields in this iteration.")
+    residual_primal: float | None = Field(None, description="Mean residual norm of L_phi over the iteration's steps.")
+    residual_differential: float | None = Field(None, description="Mean residual norm of dL_theta.")
+    parameter_error: float | None = Field(None, description="max |p - target| (synthetic targets only).")
+    images: bool = Field(False, description="Whether renders and gradient images were written this iteration.")
+    preview_scales: list[float] | None = Field(None, description="Value of full red in each gradient preview.")
 
 
 class JobPublic(BaseModel):
@@ -32,6 +109,11 @@ class JobPublic(BaseModel):
     field: str | None = Field(None, description="The job-file field an error concerns.")
     elapsed_seconds: float | None = Field(None, description="Seconds since the job started running.")
     eta_seconds: float | None = Field(None, description="Estimated seconds to completion.")
+    experiment: str | None = Field(None, description="Id of the experiment this job is a run of.")
+    varied: dict[str, Any] | None = Field(None, description="Values of the experiment's varied fields.")
+    read_token: str | None = Field(None, description="Short-lived token for this job's GET routes (events, images, "
+                                                     "downloads), for clients that cannot send headers: "
+                                                     "?token=<it>. Null without API keys.")
 
 
 class JobAccepted(BaseModel):
@@ -44,16 +126,3 @@ class JobAccepted(BaseModel):
 class JobPage(BaseModel):
     items: list[JobPublic] = Field(description="Jobs, newest first.")
     next_cursor: str | None = Field(None, description="Pass as ?cursor= for the next page; null at the end.")
-
-
-class IterationRecord(BaseModel):
-    """One iteration of the loop (Sec. 5)."""
-
-    model_config = {"extra": "allow"}
-
-    iteration: int = Field(description="0-based iteration index.")
-    loss: float | None = Field(description="Image loss z(y), summed over sensors.")
-    parameters: list[float] = Field(description="Parameters at which loss and gradient were evaluated.")
-    updated_parameters: list[float] = Field(description="Parameters after the Adam step and projection.")
-    dz_dp: list[float] = Field(description="Gradient of the loss w.r.t. every scalar (Eq. 10).")
-    seconds: dict[str, float] = Field(description="Seconds per phase: training, rendering, gradient.")

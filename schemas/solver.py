@@ -16,7 +16,7 @@ class HashGridConfig(BaseModel):
     """Multiresolution hash encoding of position (Müller et al. 2022), on positions normalised to
     the unit cube by the scene's bounding box."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     n_levels: int = Field(8, ge=1, le=24, description="Number of grid resolutions.")
     features_per_level: int = Field(2, ge=1, le=8, description="Learned features stored per grid vertex.")
@@ -34,7 +34,7 @@ class HashGridConfig(BaseModel):
 class MLPConfig(BaseModel):
     """Fully connected network after the encodings (ReLU hidden activations, linear output)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     hidden_width: int = Field(64, ge=4, le=1024, description="Neurons per hidden layer (paper: 256).")
     hidden_layers: int = Field(3, ge=1, le=8, description="Number of hidden layers (paper: 3).")
@@ -43,7 +43,7 @@ class MLPConfig(BaseModel):
 class FieldConfig(BaseModel):
     """One neural field: inputs, encodings and network."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     encoding: HashGridConfig = Field(default_factory=HashGridConfig,
                                      description="Encoding of the surface position x.")
@@ -54,10 +54,29 @@ class FieldConfig(BaseModel):
     use_normal: bool = Field(True, description="Feed the surface normal (tells the two sides of thin surfaces apart).")
 
 
+class PoolConfig(BaseModel):
+    """Reuse of residual batches across training steps (geometry is fixed in every job, so points,
+    incident rays, hits and encoding lookups are drawn once per batch; only BSDF and emitter
+    values are re-evaluated after a parameter step). See ``services/estimators/pool.py``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(True, description="Train on a pool of residual batches, both fields on the same batch "
+                                            "(false: two fresh batches per step, one per field, as in the paper's "
+                                            "Sec. 6.1).")
+    chunks: int = Field(8, ge=1, le=256,
+                        description="Batches kept in the pool; step s trains on batch s mod chunks. Memory: "
+                                    "chunks x N x M incident samples (~0.4 KiB each).")
+    reuse: int = Field(4, ge=1, le=10000,
+                       description="Steps a batch is trained on before it is redrawn (1: fresh samples every "
+                                   "step). Sampling and encoding cost 1/reuse of a fresh step; the fields see "
+                                   "1/reuse as many independent samples.")
+
+
 class TrainingConfig(BaseModel):
     """How ``L_phi`` and ``dL_theta`` are trained by their residuals (paper Sec. 4.1, 6.1)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     residual_points: int = Field(4096, ge=64, le=262144,
                                  description="N: residual points (x, ω_o) per training step and per residual (Eq. 8).")
@@ -71,9 +90,27 @@ class TrainingConfig(BaseModel):
                                              "where gradients are queried, which view-dependent (glossy) "
                                              "derivatives need.")
     warmup_steps: int = Field(400, ge=0, le=100000,
-                              description="Training steps before the first gradient is computed.")
+                              description="Training steps before the first gradient is computed (with "
+                                          "adaptive_steps: at most this many).")
     steps_per_iteration: int = Field(20, ge=0, le=10000,
-                                     description="Fine-tuning steps per inverse-rendering iteration (Sec. 6.1).")
+                                     description="Fine-tuning steps per inverse-rendering iteration (Sec. 6.1; "
+                                                 "with adaptive_steps: at most this many).")
+    adaptive_steps: bool = Field(False,
+                                 description="Let the residual norms decide the steps: the warm-up stops when "
+                                             "both residuals plateau, fine-tuning when they are back at their "
+                                             "plateau after a parameter step (services/estimators/schedule.py).")
+    min_warmup_steps: int = Field(100, ge=0, le=100000, description="Adaptive warm-up: at least this many steps.")
+    min_steps_per_iteration: int = Field(1, ge=0, le=10000,
+                                         description="Adaptive fine-tuning: at least this many steps per iteration.")
+    plateau_window: int = Field(40, ge=2, le=10000,
+                                description="Adaptive steps: steps per window when the warm-up compares residual "
+                                            "norms (fine-tuning averages over a tenth of it, at least 2).")
+    plateau_tolerance: float = Field(0.05, gt=0, le=1.0,
+                                     description="Adaptive steps: a residual has plateaued when its window mean fell "
+                                                 "by less than this fraction, or the field's own residual is below "
+                                                 "this fraction of the training loss; fine-tuning stops when the "
+                                                 "residual exceeds its value before the parameter step by at most "
+                                                 "this fraction of the loss.")
     learning_rate: float = Field(5e-3, gt=0, le=1.0, description="Adam learning rate of both fields.")
     learning_rate_decay: float = Field(0.999, gt=0, le=1.0,
                                        description="Multiplicative learning-rate decay per training step "
@@ -92,6 +129,8 @@ class TrainingConfig(BaseModel):
     delta_depth: int = Field(8, ge=0, le=64,
                              description="Maximum number of ideal-specular bounces a ray follows to its first "
                                          "non-delta surface.")
+    pool: PoolConfig = Field(default_factory=PoolConfig, description="Reuse of residual batches across steps.")
     radiance: FieldConfig = Field(default_factory=FieldConfig, description="The radiance field L_phi.")
     differential: FieldConfig = Field(default_factory=FieldConfig,
-                                      description="The differential radiance field dL_theta (3 outputs per scalar).")
+                                      description="The differential radiance field dL_theta (one output per active scalar "
+                                                          "and RGB channel it can change; see effects.merge_channels).")

@@ -1,0 +1,34 @@
+"""The gradient methods, by their public names: the one list every layer reads.
+
+The solver binds one class to each member (``services.solver.estimators.methods``, which fails at
+import if a member has no class); the job schema, the CLI, the planner, the tests and the bench
+iterate over :class:`Method`.
+"""
+
+from __future__ import annotations
+
+from enum import StrEnum
+
+
+class Method(StrEnum):
+    """How ``dy/dp`` of Eq. 10 is obtained.
+
+    ``ndrf-lhs``        query ``dL_theta`` at the first camera hit (Eq. 11)
+    ``ndrf-rhs``        one bounce from the camera hit, ``dL_theta`` and ``L_phi`` at ``x'`` (Sec. 6.3)
+    ``radiance-cache``  the same bounce with ``L_phi`` but indirect ``dL = 0`` (Sec. 7.1: biased)
+    ``direct``          the same bounce with emitters only (biased, no field)
+    ``prb``             Mitsuba's Path Replay Backpropagation integrator (the reference)
+    """
+
+    NDRF_LHS = "ndrf-lhs"
+    NDRF_RHS = "ndrf-rhs"
+    RADIANCE_CACHE = "radiance-cache"
+    DIRECT = "direct"
+    PRB = "prb"
+
+
+METHOD_HELP = (
+    "Gradient method: ndrf-lhs (dL_theta at the camera hit, Eq. 11), ndrf-rhs (one bounce with "
+    "dL_theta and L_phi at the next hit, Sec. 6.3), radiance-cache (L_phi, indirect dL = 0), direct "
+    "(emitters only) or prb (Mitsuba's Path Replay Backpropagation, the reference)."
+)

@@ -1,0 +1,14 @@
+"""The built-in scenes, by name, as clients see them (the solver builds them:
+``services.solver.scene.builtin``, which checks at import that it builds exactly these)."""
+
+from __future__ import annotations
+
+BUILTIN_SCENES: dict[str, str] = {
+    "cornell-box": "Mitsuba's Cornell box (mi.cornell_box()).",
+    "hidden-object": "Closed room; the optimized sphere is behind the camera and reaches the image only "
+                     "through interreflection (paper Fig. 5).",
+    "mirror-box": "Cornell box whose back wall is a perfect mirror, with a blue sphere.",
+    "glossy-box": "Cornell box with a rough gold sphere (GGX roughness 0.15) reflecting the walls.",
+    "closet-box": "Cornell box with a closed cube hiding a red sphere: no camera path reaches the sphere, "
+                  "so the planner drops its parameters.",
+}

@@ -1,0 +1,40 @@
+"""The registry of gradient methods: one class per :class:`schemas.methods.Method`.
+
+Each class declares its ``name``, the fields it can use (``uses``) and how an effect plan shapes
+it (``from_plan``); the trainer, the planner, the loop, the CLI, the tests and the bench read
+this registry. The interface is documented once, in :mod:`.base`.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from schemas.methods import Method
+from services.solver.estimators.methods.base import Fields, GradientMethod, contract
+from services.solver.estimators.methods.camera_hit import Direct, NdrfLhs, NdrfRhs, OneBounce, RadianceCache
+from services.solver.estimators.methods.prb import Prb
+
+if TYPE_CHECKING:
+    from services.solver.scene.planner import EffectPlan
+
+METHODS: dict[Method, type[GradientMethod]] = {cls.name: cls for cls in (NdrfLhs, NdrfRhs, RadianceCache, Direct, Prb)}
+
+_missing = set(Method) - set(METHODS)
+if _missing:  # a public name without an implementation is a programming error: fail at import
+    raise ImportError(f"gradient methods without a class: {sorted(_missing)}")
+
+
+def method_class(name: str | Method) -> type[GradientMethod]:
+    try:
+        return METHODS[Method(name)]
+    except ValueError:
+        raise ValueError(f"unknown gradient method {name!r}; known: {', '.join(METHODS)}") from None
+
+
+def make_method(name: str | Method, plan: EffectPlan | None = None, max_depth: int = 12) -> GradientMethod:
+    """The method ``name`` as the effect plan shapes it (see each class's ``from_plan``);
+    ``max_depth`` is the path depth of path-traced methods (``prb``)."""
+    return method_class(name).from_plan(plan, max_depth)
+
+
+__all__ = ["METHODS", "Fields", "GradientMethod", "OneBounce", "contract", "make_method", "method_class"]

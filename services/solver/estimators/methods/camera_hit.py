@@ -1,0 +1,216 @@
+"""The camera-hit methods: ``ndrf-lhs``, ``ndrf-rhs``, ``radiance-cache`` and ``direct``.
+
+All four trace the camera's primary rays (through delta surfaces) to their first non-delta hit
+``x``, reached with delta throughput ``β``, and estimate there (Eq. 3, 11)
+
+    dI = β · [∂E(x) + ∂L_r(x)]
+
+where ``∂E(x)`` is exact (forward-mode AD of ``emitter.eval``) and ``∂L_r(x)`` is what the method
+estimates:
+
+=================  ==========================================================================
+``ndrf-lhs``       ``dL_theta(x, ω_o)`` (Eq. 11)
+``ndrf-rhs``       one MIS bounce from ``x``: the right-hand side of Eq. 4 with ``L_phi`` and
+                   ``dL_theta`` at the next hit ``x'`` (Sec. 6.3)
+``radiance-cache`` the same bounce with ``L_phi`` but ``∂L_r(x') = 0`` (Sec. 7.1: misses indirect
+                   gradients)
+``direct``         the same bounce with emitters only: direct illumination, no field
+=================  ==========================================================================
+
+Sampling is detached; ``β`` carries no derivative (see ``services.solver.sampling.delta``).
+"""
+
+from __future__ import annotations
+
+import logging
+from abc import abstractmethod
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import torch
+
+from schemas.methods import Method
+from services.solver.estimators.methods.base import DIFFERENTIAL, RADIANCE, Fields, GradientMethod
+from services.solver.estimators.problem import Problem
+from services.solver.fields.field import evaluate
+from services.solver.sampling.camera import CameraSamples, develop, sample_camera
+from services.solver.sampling.incident import sample_incident
+from services.solver.sampling.passes import passes_for
+from services.solver.sampling.surface import queryable
+from services.solver.sampling.tensors import field_query, mask, rgb
+from services.solver.seeds import derive_seed
+
+log = logging.getLogger(__name__)
+
+#: Camera rays per pass: each holds an incident sample and the derivatives of A scalars.
+RAYS_PER_PASS = 1 << 18
+
+
+class CameraHitMethod(GradientMethod):
+    """Shared camera pass: primary rays, delta chains, exact ``∂E`` at emitter hits, then
+    :meth:`differential_radiance` at surface hits. Only the active scalars of the problem's layout
+    are differentiated; the others get zeros."""
+
+    @abstractmethod
+    def differential_radiance(self, problem: Problem, fields: Fields, si: mi.SurfaceInteraction3f,
+                              where: mi.Bool, sampler: mi.Sampler) -> torch.Tensor:
+        """``∂L_r(x, ω_o)`` at the lanes ``where`` of ``si``: ``(K, A, 3)`` (zeros elsewhere)."""
+
+    # ------------------------------------------------------------ entry points
+
+    def images(self, problem, fields, *, spp, seed, sensor=0):
+        self.check(fields)
+        width, height = problem.scene.resolution(sensor)
+        if problem.layout.active == 0:
+            return np.zeros((problem.parameters.n, height, width, 3), np.float32)
+        sensor_obj = problem.scene.sensor(sensor)
+        passes, per_pass = passes_for(width * height, spp, RAYS_PER_PASS)
+        total = None
+        for k in range(passes):
+            samples, values = self._rays(problem, fields, sensor_obj, per_pass, derive_seed(seed, "camera", k))
+            part = develop(sensor_obj, samples, values)
+            total = part if total is None else total + part
+        return problem.layout.scatter_images((total / passes).astype(np.float32), problem.parameters.n)
+
+    def loss_gradient(self, problem, fields, dz_dy, *, spp, seed, sensor=0):
+        """Eq. 10 per camera ray: with a box filter a pixel is the mean of its rays, so
+        ``dz/dp = Σ_rays dz/dy[pixel(ray)] · dI_ray / spp`` (no per-scalar image is formed)."""
+        self.check(fields)
+        width, height = problem.scene.resolution(sensor)
+        if dz_dy.shape != (height, width, 3):
+            raise ValueError(f"dz/dy has shape {dz_dy.shape}, the film is {(height, width, 3)}")
+        sensor_obj = problem.scene.sensor(sensor)
+        if problem.layout.active == 0:
+            return np.zeros(problem.parameters.n)
+        if not sensor_obj.film().rfilter().is_box_filter():
+            return super().loss_gradient(problem, fields, dz_dy, spp=spp, seed=seed, sensor=sensor)
+        passes, per_pass = passes_for(width * height, spp, RAYS_PER_PASS)
+        pixel_weights = torch.from_numpy(np.ascontiguousarray(dz_dy.reshape(-1, 3), dtype=np.float64))
+        active = np.zeros(problem.layout.active)
+        for k in range(passes):
+            _, values = self._rays(problem, fields, sensor_obj, per_pass, derive_seed(seed, "camera", k))
+            rays = torch.from_numpy(values).double().reshape(width * height, per_pass, -1, 3)
+            active += torch.einsum("xsac,xc->a", rays, pixel_weights).numpy() / per_pass
+        out = np.zeros(problem.parameters.n)
+        out[list(problem.layout.scalars)] = active / passes
+        return out
+
+    # ------------------------------------------------------------ camera pass
+
+    def _rays(self, problem: Problem, fields: Fields, sensor: mi.Sensor, spp: int,
+              seed: int) -> tuple[CameraSamples, np.ndarray]:
+        """The per-ray derivatives ``dI`` of one pass: ``(K, A, 3)``, ``K = W·H·spp`` in Mitsuba's
+        pixel-major order."""
+        scene = problem.scene.scene
+        params, layout = problem.parameters, problem.layout
+        samples, sampler = sample_camera(scene, sensor, spp, seed, problem.delta_depth)
+        chain = samples.chain
+        si = chain.si
+        with dr.suspend_grad():
+            emitter = si.emitter(scene, chain.active)
+            on_emitter = chain.active & (emitter != None)
+            on_surface = chain.active & queryable(si, scene)
+        d_reflected = self.differential_radiance(problem, fields, si, on_surface, sampler)  # (K, A, 3)
+        if problem.attach_emission:  # ∂E at camera hits on emitters (exact)
+            with params.tracking():
+                with dr.resume_grad(), dr.scoped_set_flag(dr.JitFlag.SymbolicCalls, False):
+                    emitted = dr.select(on_emitter, emitter.eval(si, on_emitter), 0.0)
+                d_emitted = torch.stack([rgb(g[0]) for g in params.forward([emitted], layout.scalars)], 1)
+            d_reflected = d_reflected + d_emitted
+        scale = rgb(samples.weight * chain.beta)[:, None, :]                                   # (K, 1, 3)
+        return samples, (scale * d_reflected).numpy()
+
+
+class NdrfLhs(CameraHitMethod):
+    """``∂L_r(x) = dL_theta(x, ω_o)`` at the camera hit (Eq. 11).
+
+    From a plan without ``dL_theta`` (no interreflection: one bounce with emission is exact, or the
+    field forced off) it becomes that one-bounce estimate."""
+
+    name = Method.NDRF_LHS
+    uses = frozenset({RADIANCE, DIFFERENTIAL})
+
+    def __init__(self, *, radiance: bool = False, differential: bool = True):
+        super().__init__(radiance=radiance, differential=differential)
+
+    @classmethod
+    def from_plan(cls, plan, max_depth=12):
+        if plan is not None and not plan.differential_field.value:
+            return OneBounce(cls.name, radiance=bool(plan.radiance_field.value), differential=False)
+        return cls()
+
+    def differential_radiance(self, problem, fields, si, where, sampler):
+        with torch.no_grad():
+            return problem.layout.unpack(evaluate(fields.differential, field_query(si), mask(where)))
+
+
+class OneBounce(CameraHitMethod):
+    """``∂L_r(x)`` by one MIS bounce from the camera hit: the right-hand side of Eq. 4 (Eq. 9 with
+    ``M = 1`` per camera ray) with the incident radiance ``L_phi`` and differential radiance
+    ``dL_theta`` at ``x'`` where the method uses them, zero where it does not (radiance cache:
+    ``dL = 0``; direct: both zero)."""
+
+    uses = frozenset({RADIANCE, DIFFERENTIAL})
+
+    def __init__(self, name: Method, *, radiance: bool, differential: bool):
+        self.name = name  # the public method this instance realises
+        super().__init__(radiance=radiance, differential=differential)
+
+    def differential_radiance(self, problem, fields, si, where, sampler):
+        params, layout = problem.parameters, problem.layout
+        with params.tracking():
+            inc = sample_incident(problem.scene.scene, si, sampler, delta_depth=problem.delta_depth,
+                                  parameters=params, scalars=layout.scalars, attach_bsdf=problem.attach_bsdf,
+                                  attach_emission=problem.attach_emission, active=where)
+        problem.count_sanitized("camera", inc.sanitized)
+        out = torch.stack([rgb(g) for g in inc.d_emitted], 1)                 # (K, A, 3)
+        with torch.no_grad():
+            hit_surface = mask(inc.hit_surface)
+            hits = field_query(inc.hit)
+            if self.needs_radiance and inc.d_throughput is not None:
+                d_throughput = torch.stack([rgb(g) for g in inc.d_throughput], 1)
+                out = out + d_throughput * evaluate(fields.radiance, hits, hit_surface)[:, None, :]
+            if self.needs_differential:
+                dl = layout.unpack(evaluate(fields.differential, hits, hit_surface))
+                out = out + rgb(inc.throughput)[:, None, :] * dl
+        return out
+
+
+class NdrfRhs(OneBounce):
+    """One bounce with ``L_phi`` and ``dL_theta`` at ``x'`` (Sec. 6.3)."""
+
+    name = Method.NDRF_RHS
+
+    def __init__(self, *, radiance: bool = True, differential: bool = True):
+        super().__init__(Method.NDRF_RHS, radiance=radiance, differential=differential)
+
+    @classmethod
+    def from_plan(cls, plan, max_depth=12):
+        if plan is None:
+            return cls()
+        return cls(radiance=bool(plan.radiance_field.value), differential=bool(plan.differential_field.value))
+
+
+class RadianceCache(OneBounce):
+    """One bounce with ``L_phi`` at ``x'`` and ``∂L_r(x') = 0`` (Sec. 7.1)."""
+
+    name = Method.RADIANCE_CACHE
+    uses = frozenset({RADIANCE})
+
+    def __init__(self, *, radiance: bool = True, differential: bool = False):
+        super().__init__(Method.RADIANCE_CACHE, radiance=radiance, differential=differential)
+
+    @classmethod
+    def from_plan(cls, plan, max_depth=12):
+        return cls(radiance=True if plan is None else bool(plan.radiance_field.value))
+
+
+class Direct(OneBounce):
+    """One bounce with emitters only (direct illumination)."""
+
+    name = Method.DIRECT
+    uses = frozenset()
+
+    def __init__(self, *, radiance: bool = False, differential: bool = False):
+        super().__init__(Method.DIRECT, radiance=radiance, differential=differential)

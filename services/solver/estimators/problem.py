@@ -1,0 +1,62 @@
+"""``Problem``: one scene with its optimized scalars, as every estimator sees it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from services.solver.estimators.layout import DerivativeLayout
+from services.solver.sampling.surface import SurfaceSampler
+from services.solver.scene.load import LoadedScene
+from services.solver.scene.params import ParameterSet
+from services.solver.scene.planner import EffectPlan
+
+
+@dataclass
+class Problem:
+    """A loaded scene, the ordered optimized scalars ``p`` (``P = parameters.n``), and what is
+    simulated of it (by default everything; :meth:`apply_plan` narrows it to the effect plan):
+
+    delta_depth      ideal-specular bounces rays follow
+    layout           the active scalars and the RGB channels dL_theta carries for each
+    attach_bsdf      differentiate ``bsdf.eval`` (the (∂f) L term)
+    attach_emission  differentiate ``emitter.eval`` (the ∂E term)
+    """
+
+    scene: LoadedScene
+    parameters: ParameterSet
+    delta_depth: int = 8
+    layout: DerivativeLayout | None = None
+    attach_bsdf: bool = True
+    attach_emission: bool = True
+    plan: EffectPlan | None = None
+    sanitized: dict[str, int] = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.layout is None:
+            self.layout = DerivativeLayout.full(self.parameters.n)
+
+    def apply_plan(self, plan: EffectPlan) -> None:
+        """Simulate only what ``plan`` calls for."""
+        self.plan = plan
+        self.delta_depth = int(plan.delta_depth.value)
+        self.attach_bsdf = bool(plan.bsdf_term.value)
+        self.attach_emission = bool(plan.emission_term.value)
+        active = plan.active_scalars
+        self.layout = DerivativeLayout(tuple(active), tuple(plan.scalars[i].channels for i in active))
+
+    @cached_property
+    def surface(self) -> SurfaceSampler:
+        return SurfaceSampler(self.scene.scene)
+
+    @property
+    def bbox(self) -> tuple[np.ndarray, np.ndarray]:
+        box = self.scene.scene.bbox()
+        return np.array(box.min, dtype=np.float32), np.array(box.max, dtype=np.float32)
+
+    def count_sanitized(self, where: str, count: int) -> None:
+        """Record lanes whose non-finite values were zeroed, so hiding a problem stays visible."""
+        if count:
+            self.sanitized[where] = self.sanitized.get(where, 0) + int(count)

@@ -1,0 +1,43 @@
+"""Checkpoints: everything a run needs to continue exactly where it stopped, as bytes (the host
+stores them; the solver never touches the store).
+
+A checkpoint holds the index of the next iteration, the parameter vector and its Adam state, both
+fields and their optimizers (via ``FieldTrainer.state_dict``, which includes the training-step
+counter that every sample seed derives from), torch's RNG state, and a fingerprint of the job so
+that a checkpoint is never loaded into a different job. It is read with ``weights_only=True``:
+tensors and plain data only, so a checkpoint from the store cannot run code.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import torch
+
+from schemas.job import JobSpec
+
+
+def dumps(*, spec: JobSpec, next_iteration: int, parameters: np.ndarray, adam: dict, trainer: dict | None,
+          attempt: str | None = None) -> bytes:
+    state = {
+        "fingerprint": spec.fingerprint(),
+        "next_iteration": next_iteration,
+        "parameters": np.asarray(parameters, np.float64).tolist(),
+        "adam": adam,
+        "trainer": trainer,
+        "torch_rng": torch.get_rng_state(),
+        "attempt": attempt,
+    }
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    return buffer.getvalue()
+
+
+def loads(blob: bytes, spec: JobSpec) -> dict:
+    """Read a checkpoint; raises ``ValueError`` if it belongs to another job."""
+    state = torch.load(io.BytesIO(blob), map_location="cpu", weights_only=True)
+    if state.get("fingerprint") != spec.fingerprint():
+        raise ValueError("the checkpoint belongs to a different job specification")
+    torch.set_rng_state(state["torch_rng"])
+    return state

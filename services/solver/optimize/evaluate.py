@@ -1,0 +1,70 @@
+"""One gradient evaluation at a job's initial parameters (the ``ndrf gradient`` command and the
+benchmarks): train the method's fields, then ``dI/dp`` (Eq. 3) and ``dz/dp`` (Eq. 10)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from schemas.job import JobSpec
+from services.solver.estimators.methods import contract, make_method
+from services.solver.estimators.render import render
+from services.solver.estimators.training import fields_of, trainer_for
+from services.solver.optimize.losses import image_loss
+from services.solver.optimize.setup import prepare
+from services.solver.seeds import derive_seed
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class GradientEvaluation:
+    """``images[s]``: ``(P, H, W, 3)`` float32 of sensor ``s``; ``summary``: method, seconds, dz/dp, ..."""
+
+    images: dict[int, np.ndarray]
+    summary: dict
+
+
+def evaluate_gradient(spec: JobSpec, method_name: str, *, spp: int | None = None, train_steps: int | None = None,
+                      scene_file: Path | None = None) -> GradientEvaluation:
+    prepared = prepare(spec, scene_file=scene_file, method=method_name)
+    problem = prepared.problem
+    method = make_method(method_name, problem.plan, prepared.depths["render"])
+    spp = spp or spec.render.gradient_spp
+    steps = spec.training.warmup_steps if train_steps is None else train_steps
+
+    start = time.perf_counter()
+    trainer = trainer_for(problem, method, spec.training, spec.seed)
+    if trainer is not None:
+        trainer.train(steps)
+    trained = time.perf_counter()
+    images, dz_dp, loss = {}, np.zeros(problem.parameters.n), 0.0
+    for sensor, target in sorted(prepared.targets.items()):
+        images[sensor] = method.images(problem, fields_of(trainer), spp=spp,
+                                       seed=derive_seed(spec.seed, "gradient", sensor), sensor=sensor)
+        candidate = render(problem, spp=spec.render.spp, seed=derive_seed(spec.seed, "candidate", sensor),
+                           sensor=sensor, max_depth=prepared.depths["render"])
+        z, dz_dy = image_loss(spec.loss, candidate, target)
+        loss += z
+        dz_dp += contract(images[sensor], dz_dy)
+    done = time.perf_counter()
+    summary = {
+        "method": str(method_name),
+        "seconds": done - start,
+        "training_seconds": trained - start,
+        "gradient_seconds": done - trained,
+        "train_steps": steps if trainer is not None else 0,
+        "spp": spp,
+        "resolution": list(problem.scene.resolution()),
+        "labels": problem.parameters.labels,
+        "parameters": prepared.init.tolist(),
+        "loss": loss,
+        "dz_dp": dz_dp.tolist(),
+        "sanitized": dict(problem.sanitized),
+        "effects": problem.plan.to_json() if problem.plan is not None else None,
+    }
+    return GradientEvaluation(images, summary)

@@ -1,0 +1,74 @@
+"""How a run talks to its host: the :class:`RunReporter` protocol and the :class:`RunOutcome`.
+
+The loop computes; it never writes files, records or events. The host decides where reports go:
+``services.jobs.artifacts.JobWriter`` writes them into the artifact store (the CLI and the
+worker's parent process), ``services.jobs.child`` forwards them from the sandboxed child process
+to its parent, and tests collect them in memory.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import numpy as np
+
+from schemas.records import IterationRecord
+
+StopReason = Literal["canceled", "interrupted"]
+
+
+class RunReporter(Protocol):
+    """What a run reports, in order: ``plan``, ``targets``, then ``progress`` (warm-up, resume),
+    ``iteration`` and ``checkpoint`` as they happen. Any exception a reporter raises stops the run
+    and reaches the host unchanged (a fenced attempt, a full store)."""
+
+    def plan(self, plan: dict) -> None:
+        """What the run simulates: resolved settings, scalars, bounds, fields, effects."""
+
+    def targets(self, images: dict[int, np.ndarray]) -> None:
+        """Target image of every sensor, ``(H, W, 3)`` float32 linear RGB."""
+
+    def progress(self, kind: str, payload: dict) -> None:
+        """Signs of life between iterations: ``warmup`` (steps done of planned, residual norms),
+        ``resumed`` (the iteration a resumed run continues from)."""
+
+    def iteration(self, record: IterationRecord, renders: dict[int, np.ndarray] | None,
+                  gradients: dict[int, np.ndarray] | None) -> None:
+        """One iteration; ``renders`` (sensor -> ``(H, W, 3)``) and ``gradients`` (sensor ->
+        ``(P, H, W, 3)`` float32) only on iterations that write images."""
+
+    def checkpoint(self, state: bytes, next_iteration: int) -> None:
+        """Everything needed to continue at ``next_iteration`` (see ``optimize.checkpoint``)."""
+
+    def should_stop(self) -> StopReason | None:
+        """Polled between training steps and iterations: None to go on."""
+
+
+class RunAborted(Exception):
+    """Raised by a host's reporter to end the run without recording anything (it propagates
+    through the loop untouched)."""
+
+
+@dataclass
+class RunOutcome:
+    """How a run ended. ``interrupted``: the host asked it to stop and will resume it later from
+    its last checkpoint (written before returning)."""
+
+    status: Literal["succeeded", "failed", "canceled", "interrupted"]
+    iterations: int
+    seconds: float
+    parameters: list[float] | None = None
+    error: str | None = None
+    field: str | None = None
+
+
+class NullReporter:
+    """Reports nothing; never asks to stop (tests, benchmarks)."""
+
+    def plan(self, plan): pass
+    def targets(self, images): pass
+    def progress(self, kind, payload): pass
+    def iteration(self, record, renders, gradients): pass
+    def checkpoint(self, state, next_iteration): pass
+    def should_stop(self): return None

@@ -1,0 +1,128 @@
+"""Built-in scenes, as Mitsuba dictionaries.
+
+Each factory returns a fresh dict (Mitsuba mutates nothing, but callers may). Materials are
+declared at the top level and referenced by the shapes, so parameter keys read as
+``<material>.<property>.value`` (for example ``red.reflectance.value``).
+
+``cornell-box``     Mitsuba's own ``mi.cornell_box()``.
+``hidden-object``   A closed room; a diffuse sphere (``hidden.reflectance.value``) sits behind the
+                    camera, under the only light, and reaches the image only through
+                    interreflection (the setting of the paper's Fig. 5).
+``mirror-box``      The Cornell box with a perfect mirror as back wall and a diffuse sphere
+                    (``sphere.reflectance.value``) seen directly and in the mirror.
+``glossy-box``      The Cornell box with a rough gold sphere (GGX, ``metal.alpha.value`` = 0.15):
+                    glossy reflections of the walls, and a roughness to optimize.
+``closet-box``      The Cornell box with a closed cube hiding a sphere: its parameters cannot change
+                    the image (the planner drops them).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from schemas.scenes import BUILTIN_SCENES
+from services.solver.backend import use_mitsuba
+
+
+def _diffuse(rgb) -> dict:
+    return {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(rgb)}}
+
+
+def cornell_box() -> dict:
+    mi = use_mitsuba()
+    return mi.cornell_box()
+
+
+def hidden_object() -> dict:
+    mi = use_mitsuba()
+    T = mi.ScalarTransform4f
+    grey = {"type": "ref", "id": "walls"}
+    depth = 1.25  # the room spans z in [-1, 1.5]; the camera looks down -z from z = 0.7
+    return {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 12},
+        "sensor": {
+            "type": "perspective",
+            "fov": 70.0,
+            "to_world": T().look_at(origin=[0, 0.1, 0.7], target=[0, -0.1, -1], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": 64, "height": 64, "rfilter": {"type": "box"}},
+        },
+        "walls": _diffuse([0.5, 0.5, 0.5]),
+        "hidden": _diffuse([0.8, 0.35, 0.1]),
+        "floor": {"type": "rectangle", "bsdf": grey,
+                  "to_world": T().translate([0, -1, 0.25]).rotate([1, 0, 0], -90).scale([1, depth, 1])},
+        "ceiling": {"type": "rectangle", "bsdf": grey,
+                    "to_world": T().translate([0, 1, 0.25]).rotate([1, 0, 0], 90).scale([1, depth, 1])},
+        "back": {"type": "rectangle", "bsdf": grey, "to_world": T().translate([0, 0, -1])},
+        "front": {"type": "rectangle", "bsdf": grey,
+                  "to_world": T().translate([0, 0, 1.5]).rotate([0, 1, 0], 180)},
+        "left": {"type": "rectangle", "bsdf": grey,
+                 "to_world": T().translate([-1, 0, 0.25]).rotate([0, 1, 0], 90).scale([depth, 1, 1])},
+        "right": {"type": "rectangle", "bsdf": grey,
+                  "to_world": T().translate([1, 0, 0.25]).rotate([0, 1, 0], -90).scale([depth, 1, 1])},
+        "light": {
+            "type": "rectangle",
+            "to_world": T().translate([0, 0.99, 0.95]).rotate([1, 0, 0], 90).scale(0.25),
+            "bsdf": grey,
+            "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [40.0, 40.0, 40.0]}},
+        },
+        "hidden-sphere": {"type": "sphere", "center": [0, -0.55, 1.05], "radius": 0.4,
+                          "bsdf": {"type": "ref", "id": "hidden"}},
+    }
+
+
+def mirror_box() -> dict:
+    box = cornell_box()
+    # Materials first: Mitsuba names a parameter after the first object that declares it.
+    first = ("type", "integrator", "sensor", "white", "green", "red")
+    d = {k: box[k] for k in first}
+    d["mirror"] = {"type": "conductor", "material": "none"}
+    d["sphere"] = _diffuse([0.2, 0.3, 0.8])
+    d.update({k: v for k, v in box.items() if k not in d})
+    d["back"]["bsdf"] = {"type": "ref", "id": "mirror"}
+    d["blue-sphere"] = {"type": "sphere", "center": [0.35, -0.55, -0.2], "radius": 0.3,
+                        "bsdf": {"type": "ref", "id": "sphere"}}
+    return d
+
+
+def glossy_box() -> dict:
+    d = cornell_box()
+    d["metal"] = {"type": "roughconductor", "material": "Au", "distribution": "ggx", "alpha": 0.15}
+    d["gold-sphere"] = {"type": "sphere", "center": [-0.35, -0.62, 0.35], "radius": 0.38,
+                        "bsdf": {"type": "ref", "id": "metal"}}
+    return d
+
+
+def closet_box() -> dict:
+    """The Cornell box plus a closed cube (the closet) hiding a sphere with its own material
+    (``hidden-paint.reflectance.value``): no light and no camera path reaches the sphere."""
+    mi = use_mitsuba()
+    T = mi.ScalarTransform4f
+    d = cornell_box()
+    d["hidden-paint"] = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.9, 0.1, 0.1]}}
+    d["closet"] = {"type": "cube", "to_world": T().translate([0.55, 0.55, -0.55]).scale(0.3),
+                   "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse"}}}
+    d["treasure"] = {"type": "sphere", "center": [0.55, 0.55, -0.55], "radius": 0.1,
+                     "bsdf": {"type": "ref", "id": "hidden-paint"}}
+    return d
+
+
+#: Factories by name; the names and descriptions clients see are :data:`schemas.scenes.BUILTIN_SCENES`.
+FACTORIES: dict[str, Callable[[], dict]] = {
+    "cornell-box": cornell_box,
+    "hidden-object": hidden_object,
+    "mirror-box": mirror_box,
+    "glossy-box": glossy_box,
+    "closet-box": closet_box,
+}
+if set(FACTORIES) != set(BUILTIN_SCENES):  # the catalogue and the factories must name the same scenes
+    raise ImportError(f"built-in scenes differ: {sorted(set(FACTORIES) ^ set(BUILTIN_SCENES))}")
+
+
+def builtin_scene(name: str) -> dict:
+    """The Mitsuba dict of built-in scene ``name``; a ``KeyError`` lists the known names."""
+    try:
+        factory = FACTORIES[name]
+    except KeyError:
+        raise KeyError(f"unknown built-in scene {name!r}; known: {', '.join(sorted(FACTORIES))}") from None
+    return factory()

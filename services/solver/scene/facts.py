@@ -1,0 +1,155 @@
+"""What a scene and its chosen parameters can produce, measured by a cheap Monte Carlo probe.
+
+The effect planner (:mod:`services.solver.scene.planner`) is pure logic over these facts. The probe uses
+the solver's own machinery, so what it reports is what the solver would compute:
+
+* **interreflection**: of ``probe_rays`` BSDF-sampled rays leaving residual points, how many end
+  on another surface of the residual domain (where the fields would be queried);
+* **delta chains**: the distribution of ideal-specular chain lengths of camera rays and of those
+  surface rays, followed up to ``max_delta_depth``;
+* **reach of each optimized scalar**: camera paths are followed for ``probe_depth`` bounces; at
+  every vertex the local derivatives ``∂emitted`` / ``∂throughput`` (forward-mode AD of
+  ``bsdf.eval`` and ``emitter.eval``, Eq. 9) are computed per scalar. A scalar whose local
+  derivatives vanish at every vertex of every probed path cannot change the image through paths
+  of that length; the RGB channels in which a scalar's derivatives are non-zero tell which
+  outputs of ``dL_theta`` it needs (RGB transport never mixes channels).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from services.solver.sampling.camera import make_sampler, sample_camera
+from services.solver.sampling.incident import sample_incident
+from services.solver.sampling.surface import SurfaceSampler, pure_delta, queryable, residual_shapes
+from services.solver.sampling.tensors import rgb
+from services.solver.scene.load import LoadedScene
+from services.solver.scene.params import ParameterSet
+from services.solver.seeds import derive_seed
+
+
+@dataclass(frozen=True)
+class ScalarFacts:
+    """What the probe saw of one optimized scalar: the largest |local derivative| per RGB channel,
+    and the shortest camera path (in bounces from the camera hit) where it was non-zero."""
+
+    label: str
+    owner: str
+    channel_magnitude: tuple[float, float, float]
+    first_bounce: int | None
+
+
+@dataclass(frozen=True)
+class SceneFacts:
+    shapes: int
+    emitters: int
+    residual_shapes: int
+    delta_shapes: list[str]
+    probe_rays: int
+    interreflection_hits: int
+    delta_chain_counts: list[int]            # counts[d] = probed rays whose delta chain had length d
+    delta_unfinished: int                    # probed rays still on a delta surface at the probe's cap
+    probe_depth: int
+    scalars: list[ScalarFacts] = field(default_factory=list)
+
+
+def _delta_lengths(scene: mi.Scene, ray: mi.Ray3f, sampler: mi.Sampler, cap: int, active: mi.Bool):
+    """Length of the delta chain of each ray (``cap + 1`` for chains not finished by ``cap``)."""
+    length = mi.UInt32(0)
+    si = scene.ray_intersect(ray, active)
+    on_delta = active & si.is_valid() & pure_delta(si.bsdf().flags())
+    ctx = mi.BSDFContext()
+    for _ in range(cap + 1):
+        if not dr.any(on_delta):
+            break
+        length[on_delta] += 1
+        bs, _ = si.bsdf().sample(ctx, si, sampler.next_1d(on_delta), sampler.next_2d(on_delta), on_delta)
+        si_next = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), on_delta)
+        si[on_delta] = si_next
+        on_delta &= si.is_valid() & pure_delta(si.bsdf().flags())
+        sampler.schedule_state()
+        dr.eval(si, length, on_delta)          # keep each bounce's kernel small (see delta.py)
+    lengths = np.array(length, dtype=np.int64)
+    return lengths[np.broadcast_to(np.array(active, dtype=bool), lengths.shape)]
+
+
+def probe_scene(scene: LoadedScene, parameters: ParameterSet, *, probe_rays: int = 1 << 15,
+                probe_depth: int = 6, max_delta_depth: int = 64, seed: int = 0) -> SceneFacts:
+    mi_scene = scene.scene
+    shapes = mi_scene.shapes()
+    delta = [s.id() for s in shapes if s.bsdf() is not None and bool(int(s.bsdf().flags()) & int(mi.BSDFFlags.Delta))
+             and not int(s.bsdf().flags()) & int(mi.BSDFFlags.Smooth)]
+    lengths: list[np.ndarray] = []
+
+    # ------------------------------------------------ interreflection from residual points
+    hits = 0
+    if residual_shapes(mi_scene):
+        surface = SurfaceSampler(mi_scene)
+        points = surface.sample(make_sampler(derive_seed(seed, "probe", "points"), probe_rays), probe_rays)
+        sampler = make_sampler(derive_seed(seed, "probe", "incident"), probe_rays)
+        inc = sample_incident(mi_scene, points.si, sampler, delta_depth=max_delta_depth)
+        hits = int(np.count_nonzero(np.array(inc.hit_surface)))
+        bs, _ = points.si.bsdf().sample(mi.BSDFContext(), points.si, sampler.next_1d(), sampler.next_2d())
+        if delta:
+            lengths.append(_delta_lengths(mi_scene, points.si.spawn_ray(points.si.to_world(bs.wo)), sampler,
+                                          max_delta_depth, bs.pdf > 0))
+
+    # ------------------------------------------- camera paths: reach of every scalar
+    width, height = scene.resolution()
+    spp = max(1, probe_rays // max(1, width * height))
+    samples, sampler = sample_camera(mi_scene, scene.sensor(0), spp, derive_seed(seed, "probe", "camera"), max_delta_depth)
+    if delta:
+        camera_rays, _ = scene.sensor(0).sample_ray(0.0, 0.5, sampler.next_2d(), mi.Point2f(0.5))
+        lengths.append(_delta_lengths(mi_scene, camera_rays, sampler, max_delta_depth, mi.Bool(True)))
+    magnitude = np.zeros((parameters.n, 3))
+    first: list[int | None] = [None] * parameters.n
+    si = samples.chain.si
+    active = samples.chain.active
+    with parameters.tracking():
+        emitter = si.emitter(mi_scene, active)
+        on_emitter = active & (emitter != None)
+        with dr.resume_grad(), dr.scoped_set_flag(dr.JitFlag.SymbolicCalls, False):
+            emitted = dr.select(on_emitter, emitter.eval(si, on_emitter), 0.0)
+        _accumulate(magnitude, first, 0, [[g[0]] for g in parameters.forward([emitted])])
+        for bounce in range(probe_depth):
+            where = active & queryable(si, mi_scene)
+            if not dr.any(where):
+                break
+            inc = sample_incident(mi_scene, si, sampler, delta_depth=max_delta_depth, parameters=parameters,
+                                  active=where)
+            d_throughput = inc.d_throughput or [None] * len(inc.d_emitted)
+            _accumulate(magnitude, first, bounce, [[de] + ([dt] if dt is not None else [])
+                                                   for de, dt in zip(inc.d_emitted, d_throughput)])
+            si, active = inc.hit, inc.hit_surface
+            sampler.schedule_state()
+            dr.eval(si, active)                    # one bounce per kernel
+    counts = np.bincount(np.concatenate(lengths), minlength=max_delta_depth + 2) if lengths else np.zeros(1, int)
+    return SceneFacts(
+        shapes=len(shapes), emitters=len(mi_scene.emitters()), residual_shapes=len(residual_shapes(mi_scene)),
+        delta_shapes=delta, probe_rays=probe_rays, interreflection_hits=hits,
+        delta_chain_counts=[int(c) for c in counts[:max_delta_depth + 1]],
+        delta_unfinished=int(counts[max_delta_depth + 1:].sum()), probe_depth=probe_depth,
+        scalars=[ScalarFacts(label, info_owner, tuple(float(v) for v in magnitude[i]), first[i])
+                 for i, (label, info_owner) in enumerate(_owners(parameters))],
+    )
+
+
+def _owners(parameters: ParameterSet):
+    kinds = parameters.owner_kinds()
+    return [(s.label, kinds[s.key]) for s in parameters.scalars]
+
+
+def _accumulate(magnitude: np.ndarray, first: list, bounce: int, per_scalar: list[list]) -> None:
+    for i, grads in enumerate(per_scalar):
+        peak = np.zeros(3)
+        for g in grads:
+            values = np.nan_to_num(np.abs(rgb(g).numpy()), nan=0.0, posinf=0.0)
+            if values.size:
+                peak = np.maximum(peak, values.max(0))
+        magnitude[i] = np.maximum(magnitude[i], peak)
+        if first[i] is None and peak.max() > 0:
+            first[i] = bounce

@@ -1,0 +1,208 @@
+"""The optimized scalars ``p = (p_1, ..., p_n)`` of a scene.
+
+A job names Mitsuba ``mi.traverse`` keys (``red.reflectance.value``); each key holds one or more
+scalars (an RGB value counts 3, a roughness 1). :class:`ParameterSet` fixes their order once, reads
+and writes them as one flat vector, and computes forward-mode derivatives of any Dr.Jit
+expression with respect to each scalar: that is how ``∂_p f`` and ``∂_p E`` of Eq. 4 are obtained
+from ``bsdf.eval`` / ``emitter.eval`` without a hand-written formula per BSDF.
+
+Only material and emitter properties are accepted, and not those of purely ideal-specular BSDFs
+(a mirror's reflectance, a glass's IOR): rays are continued through such surfaces by detached
+sampling, as in Mitsuba's ``prb``, so no derivative would reach them. Geometry (vertex positions, transforms) would
+need projective sampling of visibility discontinuities, which neither the paper's method nor
+Mitsuba's ``prb`` reference provides: selecting such a key is a loud error, not a silently wrong
+gradient.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Literal
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+Owner = Literal["bsdf", "emitter"]
+
+
+@dataclass(frozen=True)
+class ParameterInfo:
+    """One differentiable scene parameter, as listed to users."""
+
+    key: str
+    size: int
+    owner: Owner
+    owner_type: str
+    value: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class Scalar:
+    """Component ``component`` of the parameter ``key``: one entry of the vector ``p``."""
+
+    key: str
+    component: int
+
+    @property
+    def label(self) -> str:
+        return f"{self.key}[{self.component}]"
+
+
+def _as_numpy(value) -> np.ndarray:
+    return np.asarray(value, dtype=np.float64).reshape(-1)
+
+
+def _like(template, flat: np.ndarray):
+    """A Dr.Jit value of the same type and shape as ``template`` holding ``flat``."""
+    return type(template)(np.asarray(flat, dtype=np.float32).reshape(dr.shape(template)))
+
+
+def _owner(params: mi.SceneParameters, key: str):
+    """The BSDF or emitter a parameter belongs to (walking up Mitsuba's object hierarchy)."""
+    node = params.properties[key][2]  # (value, handle, node, flags)
+    while node is not None:
+        if isinstance(node, mi.BSDF):
+            return "bsdf", node
+        if isinstance(node, mi.Emitter):
+            return "emitter", node
+        node = params.hierarchy.get(node, (None, 0))[0]
+    return None, None
+
+
+def _is_optimizable(params: mi.SceneParameters, key: str) -> bool:
+    # Mitsuba flags microfacet roughness "Discontinuous" (its sampling moves with it); with detached
+    # sampling, as here and in prb, its derivative is still exact. Geometry is excluded by owner.
+    if params.flags(key) & int(mi.ParamFlags.NonDifferentiable):
+        return False
+    if not dr.is_array_v(params[key]) or not dr.is_float_v(params[key]):
+        return False
+    kind, node = _owner(params, key)
+    if kind == "bsdf" and not int(node.flags()) & int(mi.BSDFFlags.Smooth):
+        return False  # ideal-specular BSDF: sampling is detached, no derivative would flow
+    return kind is not None
+
+
+def differentiable_parameters(params: mi.SceneParameters) -> list[ParameterInfo]:
+    """Every material or emitter parameter of a scene that can be optimized, in traversal order."""
+    out = []
+    for key in params.keys():  # noqa: SIM118 (SceneParameters is not a dict)
+        if not _is_optimizable(params, key):
+            continue
+        kind, node = _owner(params, key)
+        value = _as_numpy(params[key])
+        plugin = str(node).split("[", 1)[0].strip()  # e.g. SmoothDiffuse, AreaLight
+        out.append(ParameterInfo(key, value.size, kind, plugin, tuple(float(v) for v in value)))
+    return out
+
+
+class ParameterSet:
+    """The ordered optimized scalars of one scene, and forward-mode AD with respect to them.
+
+    ``n`` is the number of scalars, ``P`` in the shapes written elsewhere (gradient images are
+    ``P x H x W x 3``).
+    """
+
+    def __init__(self, params: mi.SceneParameters, keys: Sequence[str]):
+        if not keys:
+            raise ValueError("at least one parameter key must be selected")
+        if len(set(keys)) != len(keys):
+            raise ValueError(f"parameter keys must be unique, got {list(keys)}")
+        allowed = {info.key: info for info in differentiable_parameters(params)}
+        for key in keys:
+            if key not in allowed:
+                known = key in params.keys()  # noqa: SIM118 (SceneParameters is not a dict)
+                reason = "is a key, but not a differentiable material or emitter parameter" if known else (
+                    "is not a key of this scene")
+                raise ValueError(f"parameter {key!r} {reason}; optimizable keys: {', '.join(allowed) or 'none'}")
+        self.params = params
+        self.keys = list(keys)
+        self.infos = [allowed[k] for k in self.keys]
+        self.scalars = [Scalar(k, c) for k, info in zip(self.keys, self.infos) for c in range(info.size)]
+        self.owners = {k: _owner(params, k)[1] for k in self.keys}
+
+    @property
+    def n(self) -> int:
+        return len(self.scalars)
+
+    @property
+    def labels(self) -> list[str]:
+        return [s.label for s in self.scalars]
+
+    def owner_kinds(self) -> dict[str, Owner]:
+        return {info.key: info.owner for info in self.infos}
+
+    # ------------------------------------------------------------------ values
+
+    def values(self) -> np.ndarray:
+        """The current scalars as one float64 vector of shape ``(n,)``."""
+        return np.concatenate([_as_numpy(self.params[k]) for k in self.keys])
+
+    def assign(self, values: np.ndarray) -> None:
+        """Write the flat vector ``values`` (shape ``(n,)``) into the scene."""
+        values = np.asarray(values, dtype=np.float64).reshape(-1)
+        if values.size != self.n:
+            raise ValueError(f"expected {self.n} values ({', '.join(self.labels)}), got {values.size}")
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f"refusing to write non-finite parameter values {values.tolist()}")
+        offset = 0
+        for key, info in zip(self.keys, self.infos):
+            self.params[key] = _like(self.params[key], values[offset:offset + info.size])
+            offset += info.size
+        self.params.update()
+
+    def split(self, flat: np.ndarray) -> dict[str, list[float]]:
+        """``{key: [scalars]}`` view of a flat vector (for reports)."""
+        out, offset = {}, 0
+        for key, info in zip(self.keys, self.infos):
+            out[key] = [float(v) for v in np.asarray(flat).reshape(-1)[offset:offset + info.size]]
+            offset += info.size
+        return out
+
+    # ------------------------------------------------------------- derivatives
+
+    @contextmanager
+    def tracking(self) -> Iterator[None]:
+        """Enable gradient tracking on the selected parameters for the duration of the block."""
+        for key in self.keys:
+            dr.enable_grad(self.params[key])
+        self.params.update()
+        try:
+            yield
+        finally:
+            for key in self.keys:
+                dr.disable_grad(self.params[key])
+            self.params.update()
+
+    def tangent(self, index: int) -> tuple[str, object]:
+        """The one-hot tangent selecting scalar ``index``: ``(key, value-shaped array)``."""
+        scalar = self.scalars[index]
+        template = self.params[scalar.key]
+        onehot = np.zeros(_as_numpy(template).size)
+        onehot[scalar.component] = 1.0
+        return scalar.key, _like(template, onehot)
+
+    def forward(self, outputs: Sequence, scalars: Sequence[int] | None = None) -> list[list]:
+        """Forward-mode derivatives ``∂ output / ∂ p_i`` for every scalar ``i`` (or the listed ones).
+
+        Call inside :meth:`tracking`, after ``outputs`` were computed with AD enabled (sampling
+        detached, evaluation attached). The AD graph is traversed once per scalar and kept until
+        the last one. Returns ``grads[i][j]`` = derivative of ``outputs[j]`` w.r.t. scalar ``i``.
+        """
+        keep = dr.ADFlag.ClearInterior | dr.ADFlag.ClearInput
+        order = list(range(self.n)) if scalars is None else list(scalars)
+        grads = []
+        for position, i in enumerate(order):
+            key, tangent = self.tangent(i)
+            dr.set_grad(self.params[key], tangent)
+            dr.enqueue(dr.ADMode.Forward, self.params[key])
+            dr.traverse(dr.ADMode.Forward, flags=keep if position + 1 < len(order) else dr.ADFlag.Default)
+            row = [dr.grad(o) for o in outputs]
+            dr.eval(row)
+            grads.append(row)
+            for o in outputs:
+                dr.clear_grad(o)
+            dr.clear_grad(self.params[key])
+        return grads
