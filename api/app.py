@@ -1,8 +1,11 @@
 """The FastAPI application: ``create_app(settings)``.
 
 With ``REDIS_URL`` the API only queues jobs (workers run them); without it, the same API runs
-jobs on worker threads of its own (the embedded default). Either way a reconciler re-enqueues, at
-start-up, every unfinished job of the store the queue does not hold.
+jobs on worker threads of its own (the embedded default), each job in a sandboxed child process.
+In embedded mode the in-process queue starts empty, so every unfinished job of the store is
+re-enqueued at start-up; in Redis mode the API takes its turn of the locked reconciler (which
+re-enqueues only jobs missing from the queue, and without a live attempt, for two lease
+periods). The API process never imports Mitsuba or torch (an import-linter contract checks it).
 """
 
 from __future__ import annotations
@@ -14,7 +17,9 @@ from fastapi import FastAPI
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from api import problems
-from api.routes import artifacts, events, health, jobs, scenes
+from api.routes import artifacts, events, experiments, health, jobs, scenes
+from api.routes.health import Snapshot
+from api.streams import StreamHub
 from services.runtime import build_runtime
 from services.settings import Settings, get_settings
 
@@ -70,29 +75,38 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        import anyio.to_thread
+        import anyio
 
-        anyio.to_thread.current_default_thread_limiter().total_tokens = 200  # SSE waits hold a thread each
+        from worker.main import make_worker
+
         runtime = build_runtime(settings)
+        runtime.blocking = anyio.CapacityLimiter(settings.preflight_workers)
         app.state.runtime = runtime
-        missing = runtime.service.reconcile()
-        if missing:
-            log.warning("re-enqueued %d unfinished job(s) at start-up", len(missing))
+        app.state.snapshot = Snapshot(runtime)
         if runtime.embedded:
-            runtime.start_embedded_workers()
+            missing = await anyio.to_thread.run_sync(runtime.service.reconcile, 0.0)
+            if missing:
+                log.warning("re-enqueued %d unfinished job(s) at start-up", len(missing))
+            runtime.start_embedded_workers(make_worker)
+        else:
+            await anyio.to_thread.run_sync(runtime.reconcile_periodically)
+        app.state.streams = StreamHub(runtime)
+        runtime.start_experiment_scheduler()
         try:
             yield
         finally:
-            runtime.stop()
+            await app.state.streams.close()
+            await runtime.events.aclose()
+            await anyio.to_thread.run_sync(runtime.stop)
 
     app = FastAPI(
         title="NDRF inverse rendering",
-        version="0.1.0",
+        version="0.2.0",
         summary="Recover scene parameters from photographs with Neural Differential Radiance Fields.",
         lifespan=lifespan,
     )
     problems.install(app)
-    for module in (jobs, artifacts, events, scenes, health):
+    for module in (jobs, artifacts, events, experiments, scenes, health):
         app.include_router(module.router)
     from api.dashboard import mount
 

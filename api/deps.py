@@ -1,4 +1,11 @@
-"""Dependencies of the routes (the FastAPI ``Annotated`` aliases used in signatures)."""
+"""Dependencies of the routes (the FastAPI ``Annotated`` aliases used in signatures).
+
+Authentication: with API keys configured, every ``/v1`` route needs ``Authorization: Bearer
+<key>``; the caller is the key's owner id (:func:`services.settings.key_id`), or an admin. The GET
+routes of one job also accept ``?token=`` with a read token of that job (:mod:`api.tokens`).
+Without keys the service is single-tenant and anonymous (loopback only, unless
+``NDRF_ALLOW_ANONYMOUS``).
+"""
 
 from __future__ import annotations
 
@@ -7,9 +14,12 @@ from typing import Annotated
 
 from fastapi import Depends, Request
 
+from api import tokens
 from api.problems import ProblemError
+from services.jobs.service import ANONYMOUS, Caller
+from services.jobs.state import UnknownJob
 from services.runtime import Runtime
-from services.settings import Settings
+from services.settings import Settings, key_id
 
 
 def get_runtime(request: Request) -> Runtime:
@@ -24,16 +34,80 @@ RuntimeDep = Annotated[Runtime, Depends(get_runtime)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 
 
-def require_api_key(request: Request, settings: SettingsDep) -> None:
-    """With API keys configured, every /v1 route needs ``Authorization: Bearer <key>``. The query
-    parameter ``access_token`` is accepted too, for EventSource and <img> (which cannot set headers)."""
-    if not settings.api_keys:
-        return
+def _unauthorized() -> ProblemError:
+    return ProblemError(401, "Unauthorized", "a valid API key is required: Authorization: Bearer <key>",
+                        slug="unauthorized", headers={"WWW-Authenticate": 'Bearer realm="ndrf"'})
+
+
+def _bearer(request: Request) -> str | None:
     header = request.headers.get("authorization", "")
-    token = header[7:].strip() if header.lower().startswith("bearer ") else request.query_params.get("access_token", "")
-    if not any(hmac.compare_digest(token.encode(), key.encode()) for key in settings.api_keys):
-        raise ProblemError(401, "Unauthorized", "a valid API key is required: Authorization: Bearer <key>",
-                           slug="unauthorized", headers={"WWW-Authenticate": 'Bearer realm="ndrf"'})
+    return header[7:].strip() if header.lower().startswith("bearer ") else None
 
 
-Authenticated = Depends(require_api_key)
+def _match(token: str, keys: list[str]) -> bool:
+    return any(hmac.compare_digest(token.encode(), key.encode()) for key in keys)
+
+
+def caller_of(request: Request, settings: Settings) -> Caller | None:
+    """The caller a request's bearer key names (None: no valid key)."""
+    if not settings.auth:
+        return Caller(ANONYMOUS, admin=True)
+    token = _bearer(request)
+    if token is None:
+        return None
+    if _match(token, settings.admin_keys):
+        return Caller(key_id(token), admin=True)
+    if _match(token, settings.api_keys):
+        return Caller(key_id(token))
+    return None
+
+
+def require_caller(request: Request, settings: SettingsDep) -> Caller:
+    caller = caller_of(request, settings)
+    if caller is None:
+        raise _unauthorized()
+    return caller
+
+
+def require_reader(request: Request, settings: SettingsDep, job_id: str) -> Caller:
+    """A bearer key, or (GET only) a read token of this very job."""
+    caller = caller_of(request, settings)
+    if caller is not None:
+        return caller
+    token = request.query_params.get("token")
+    if request.method == "GET" and token and tokens.verify(settings.signing_secret(), token, job_id):
+        return Caller(f"token:{job_id}", admin=True)  # reads this one job: the routes only touch job_id
+    raise _unauthorized()
+
+
+def require_admin(request: Request, settings: SettingsDep) -> Caller:
+    caller = require_caller(request, settings)
+    if not caller.admin:
+        raise ProblemError(403, "Forbidden", "this route needs an admin key (NDRF_ADMIN_KEYS)", slug="forbidden")
+    return caller
+
+
+CallerDep = Annotated[Caller, Depends(require_caller)]
+ReaderDep = Annotated[Caller, Depends(require_reader)]
+
+
+# --------------------------------------------------------------------- lookups
+
+def not_found(job_id: str) -> ProblemError:
+    return ProblemError(404, "Not found", f"no job {job_id!r}", slug="unknown-job")
+
+
+def files_or_404(runtime: Runtime, job_id: str, caller: Caller):
+    """The job's files, if the caller may see the job (404 otherwise: ids of others' jobs are not
+    confirmed)."""
+    try:
+        return runtime.service.files(job_id, caller)
+    except UnknownJob:
+        raise not_found(job_id) from None
+
+
+def record_or_404(runtime: Runtime, job_id: str, caller: Caller):
+    try:
+        return runtime.service.record(job_id, caller)
+    except UnknownJob:
+        raise not_found(job_id) from None

@@ -29,7 +29,7 @@ class FieldError(BaseModel):
     message: str = Field(description="What is wrong and what is allowed.")
 
 
-class Problem(BaseModel):
+class ProblemDetails(BaseModel):
     """RFC 9457 problem details."""
 
     type: str = Field("about:blank", description="URI reference identifying the problem type.")
@@ -52,7 +52,7 @@ class ProblemError(Exception):
 
 def problem_response(request: Request, status: int, title: str, detail: str | None = None, *,
                      slug: str | None = None, errors=None, headers=None) -> JSONResponse:
-    body = Problem(type=f"/problems/{slug}" if slug else "about:blank", title=title, status=status, detail=detail,
+    body = ProblemDetails(type=f"/problems/{slug}" if slug else "about:blank", title=title, status=status, detail=detail,
                    instance=request.url.path,
                    errors=[FieldError(field=f, message=m) for f, m in errors] if errors else None)
     return JSONResponse(body.model_dump(exclude_none=True), status_code=status, media_type=PROBLEM_JSON,

@@ -1,53 +1,52 @@
-"""How store records become API documents (pure functions over the job folder)."""
+"""How store records become API documents (pure functions over a job's record and files)."""
 
 from __future__ import annotations
 
+from datetime import UTC, datetime
+
 import numpy as np
 
-from schemas.records import FINISHED, JobPublic
-from services.store.layout import JobFolder
+from api import tokens
+from schemas.records import FINISHED, JobPublic, JobRecord
+from services.settings import Settings
+from services.store.job import JobFiles
+
+METRICS = ("loss", "residual_primal", "residual_differential", "seconds", "sanitized", "parameter_error",
+           "learning_rate")
 
 
-def _labels(plan: dict) -> list[str]:
-    return plan.get("scalars") or []
-
-
-def job_public(folder: JobFolder) -> JobPublic:
-    record = folder.read("record.json")
-    plan = folder.read("plan.json")
-    labels = _labels(plan or {})
-    latest = folder.iteration_record(record["iteration"]) if record.get("iteration") is not None else None
-    values = latest["updated_parameters"] if latest else (plan or {}).get("init")
-    target = (plan or {}).get("target_values")
-    metrics = None
-    if latest:
-        metrics = {k: latest.get(k) for k in ("loss", "residual_primal", "residual_differential", "seconds",
-                                               "sanitized", "parameter_error", "learning_rate") if k in latest}
+def job_public(record: JobRecord, files: JobFiles, settings: Settings) -> JobPublic:
+    plan = files.read(JobFiles.PLAN) or {}
+    labels = plan.get("scalars") or []
+    latest = files.iteration_record(record.iteration) if record.iteration is not None else None
+    values = latest["updated_parameters"] if latest else plan.get("init")
+    target = plan.get("target_values")
+    metrics = {k: latest.get(k) for k in METRICS if k in latest} if latest else None
     elapsed = eta = None
-    if record.get("started"):
-        done = [folder.iteration_record(k) for k in folder.iterations()[-5:]]
-        per_iteration = [sum(r["seconds"].values()) for r in done if r]
+    if record.started:
         elapsed = _elapsed(record)
-        if per_iteration and record["status"] not in FINISHED:
-            remaining = record["iterations"] - (record["iteration"] + 1 if record.get("iteration") is not None else 0)
-            eta = float(np.mean(per_iteration)) * max(remaining, 0)
+        if record.status not in FINISHED and record.iteration is not None:
+            recent = [files.iteration_record(k) for k in range(max(0, record.iteration - 4), record.iteration + 1)]
+            per_iteration = [sum(r["seconds"].values()) for r in recent if r]
+            if per_iteration:
+                eta = float(np.mean(per_iteration)) * max(record.iterations - record.iteration - 1, 0)
+    token = tokens.sign(settings.signing_secret(), record.id, settings.token_seconds) if settings.auth else None
     return JobPublic(
-        id=record["id"], name=record.get("name"), status=record["status"], method=record["method"],
-        scene=record["scene"], created=record["created"], updated=record.get("updated", record["created"]),
-        iteration=record.get("iteration"), iterations=record["iterations"], attempts=record.get("attempts", 0),
-        parameters=dict(zip(labels, values)) if labels and values else None,
-        target=dict(zip(labels, target)) if labels and target else None,
-        metrics=metrics, plan=plan, error=record.get("error"), field=record.get("field"),
-        elapsed_seconds=elapsed, eta_seconds=eta,
+        id=record.id, name=record.name, status=record.status, method=record.method, scene=record.scene,
+        created=record.created, updated=record.updated, iteration=record.iteration, iterations=record.iterations,
+        attempts=record.attempts, parameters=dict(zip(labels, values)) if labels and values else None,
+        target=dict(zip(labels, target)) if labels and target else None, metrics=metrics, plan=plan or None,
+        error=record.error, field=record.field, elapsed_seconds=elapsed, eta_seconds=eta,
+        experiment=record.experiment, varied=record.varied, read_token=token,
     )
 
 
-def _elapsed(record: dict) -> float | None:
-    from datetime import datetime, timezone
-
+def _elapsed(record: JobRecord) -> float | None:
+    if record.started is None:
+        return None
     try:
-        start = datetime.fromisoformat(record["started"])
-        end = datetime.fromisoformat(record["updated"]) if record["status"] in FINISHED else datetime.now(timezone.utc)
-    except (KeyError, ValueError):
+        start = datetime.fromisoformat(record.started)
+        end = datetime.fromisoformat(record.updated) if record.status in FINISHED else datetime.now(UTC)
+    except (TypeError, ValueError):
         return None
     return max(0.0, (end - start).total_seconds())

@@ -1,38 +1,111 @@
-"""Caps on untrusted jobs (pure logic; the API maps a violation to a 4xx naming the limit)."""
+"""Caps on untrusted jobs (pure logic; the API maps a violation to a 4xx naming the limit).
+
+:func:`check_limits` sees the job file alone; :func:`check_scene_report` sees what the sandboxed
+loader read from the scene itself (films, sensors), since a cap must hold where the work is
+decided, not where a field happens to be: a job that omits ``render.resolution`` renders the
+XML's film.
+"""
 
 from __future__ import annotations
 
+import base64
+import binascii
+
+from schemas.errors import InvalidJob
 from schemas.job import ImageTargets, JobSpec, PathScene, SyntheticTargets
-from services.errors import JobError
+from schemas.solver import FieldConfig
 from services.settings import Limits
 
 
+def field_parameters(config: FieldConfig, outputs: int) -> int:
+    """Learned numbers of one field: hash tables (dense levels count their vertices) and MLP."""
+    grid = config.encoding
+    table = 1 << grid.log2_hashmap_size
+    entries = sum(min(table, (int(grid.base_resolution * grid.per_level_scale ** level) + 1) ** 3)
+                  for level in range(grid.n_levels))
+    width, layers = config.mlp.hidden_width, config.mlp.hidden_layers
+    inputs = grid.output_dim + config.direction_sh_degree ** 2 + 3
+    mlp = (inputs + 1) * width + (layers - 1) * (width + 1) * width + (width + 1) * outputs
+    return entries * grid.features_per_level + mlp
+
+
 def check_limits(spec: JobSpec, limits: Limits) -> None:
-    """Raise :class:`JobError` for the first field over a cap (or a source the service refuses)."""
+    """Raise :class:`InvalidJob` for the first field over a cap (or a source the service refuses)."""
     if isinstance(spec.scene, PathScene):
-        raise JobError("scene.path", "the service does not read host paths: send {'xml': ..., 'files': {...}} "
-                                     "(ndrf submit packs a local scene)")
+        raise InvalidJob("scene.path", "the service does not read host paths: send {'xml': ..., 'files': {...}} "
+                                       "(ndrf submit packs a local scene)")
     if spec.render.resolution is not None:
         width, height = spec.render.resolution
         if max(width, height) > limits.resolution:
-            raise JobError("render.resolution", f"{width}x{height} exceeds the limit of {limits.resolution} "
-                                                f"pixels per side (NDRF_MAX_RESOLUTION)")
+            raise InvalidJob("render.resolution", f"{width}x{height} exceeds the limit of {limits.resolution} "
+                                                  f"pixels per side (NDRF_MAX_RESOLUTION)")
     for field, spp in (("render.spp", spec.render.spp), ("render.gradient_spp", spec.render.gradient_spp)):
         if spp > limits.spp:
-            raise JobError(field, f"{spp} exceeds the limit of {limits.spp} samples per pixel (NDRF_MAX_SPP)")
+            raise InvalidJob(field, f"{spp} exceeds the limit of {limits.spp} samples per pixel (NDRF_MAX_SPP)")
     if isinstance(spec.targets, SyntheticTargets) and spec.targets.synthetic.spp > limits.spp:
-        raise JobError("targets.synthetic.spp", f"{spec.targets.synthetic.spp} exceeds the limit of {limits.spp} "
-                                                f"samples per pixel (NDRF_MAX_SPP)")
+        raise InvalidJob("targets.synthetic.spp", f"{spec.targets.synthetic.spp} exceeds the limit of {limits.spp} "
+                                                  f"samples per pixel (NDRF_MAX_SPP)")
     if spec.iterations > limits.iterations:
-        raise JobError("iterations", f"{spec.iterations} exceeds the limit of {limits.iterations} (NDRF_MAX_ITERATIONS)")
+        raise InvalidJob("iterations", f"{spec.iterations} exceeds the limit of {limits.iterations} "
+                                       f"(NDRF_MAX_ITERATIONS)")
     if len(spec.parameters) > limits.parameters:
-        raise JobError("parameters", f"{len(spec.parameters)} parameters exceed the limit of {limits.parameters} "
-                                     f"scalars (NDRF_MAX_PARAMETERS)")
-    lanes = spec.training.residual_points * spec.training.incident_samples
+        raise InvalidJob("parameters", f"{len(spec.parameters)} parameters exceed the limit of {limits.parameters} "
+                                       f"scalars (NDRF_MAX_PARAMETERS)")
+    training = spec.training
+    lanes = training.residual_points * training.incident_samples
     if lanes > limits.training_points:
-        raise JobError("training.residual_points", f"N x M = {lanes} exceeds the limit of {limits.training_points} "
-                                                   f"(NDRF_MAX_TRAINING_POINTS)")
+        raise InvalidJob("training.residual_points", f"N x M = {lanes} exceeds the limit of {limits.training_points} "
+                                                     f"(NDRF_MAX_TRAINING_POINTS)")
+    steps = training.warmup_steps + spec.iterations * training.steps_per_iteration
+    if steps > limits.training_steps:
+        raise InvalidJob("training.steps_per_iteration", f"warm-up + iterations x steps per iteration = {steps} "
+                                                         f"training steps exceed the limit of {limits.training_steps} "
+                                                         f"(NDRF_MAX_TRAINING_STEPS)")
+    outputs = 3 * limits.parameters
+    for name, config in (("radiance", training.radiance), ("differential", training.differential)):
+        size = field_parameters(config, 3 if name == "radiance" else outputs)
+        if size > limits.field_parameters:
+            raise InvalidJob(f"training.{name}", f"the field would learn {size} numbers, more than the limit of "
+                                                 f"{limits.field_parameters} (NDRF_MAX_FIELD_PARAMETERS): use a "
+                                                 f"smaller hash table, fewer levels or a narrower network")
     if isinstance(spec.targets, ImageTargets):
         for i, image in enumerate(spec.targets.images):
             if len(image.data) * 3 // 4 > limits.upload_bytes:
-                raise JobError(f"targets.images[{i}].data", f"image exceeds the upload limit of {limits.upload_bytes} bytes")
+                raise InvalidJob(f"targets.images[{i}].data",
+                                 f"image exceeds the upload limit of {limits.upload_bytes} bytes")
+
+
+def check_target_headers(spec: JobSpec, limits: Limits) -> None:
+    """Refuse target images whose header declares more pixels than ``NDRF_MAX_IMAGE_PIXELS``,
+    before any decoder allocates for them."""
+    from services.uploads.images import ImageHeaderError, image_header
+
+    if not isinstance(spec.targets, ImageTargets):
+        return
+    for i, image in enumerate(spec.targets.images):
+        where = f"targets.images[{i}].data"
+        try:
+            head = base64.b64decode(image.data[:65536 - 65536 % 4], validate=True)
+        except (binascii.Error, ValueError):
+            raise InvalidJob(where, "is not valid base64") from None
+        try:
+            info = image_header(head)
+        except ImageHeaderError as exc:
+            raise InvalidJob(where, str(exc)) from None
+        if info.width * info.height > limits.image_pixels:
+            raise InvalidJob(where, f"{info.width}x{info.height} = {info.width * info.height} pixels exceed the "
+                                    f"limit of {limits.image_pixels} (NDRF_MAX_IMAGE_PIXELS)")
+
+
+def check_scene_report(spec: JobSpec, report: dict, limits: Limits) -> None:
+    """Caps on what the sandboxed loader read from the scene: sensors and their films (after
+    the job's ``render.resolution``), and the samples they imply."""
+    sensors = report["sensors"]
+    if len(sensors) > limits.sensors:
+        raise InvalidJob("scene", f"the scene has {len(sensors)} sensors, more than the limit of {limits.sensors} "
+                                  f"(NDRF_MAX_SENSORS)")
+    for i, (width, height) in enumerate(sensors):
+        if max(width, height) > limits.resolution:
+            field = "render.resolution" if spec.render.resolution is not None else "scene"
+            raise InvalidJob(field, f"sensor {i} has a film of {width}x{height}, over the limit of {limits.resolution} "
+                                    f"pixels per side (NDRF_MAX_RESOLUTION); set render.resolution")

@@ -2,33 +2,52 @@
 
 ``REDIS_URL``   Redis of the queue and event streams; unset = the embedded default (jobs run
                 in-process, same API)
-``NDRF_STORE``  root folder of the artifact store (the source of truth), default ``./runs``
-Everything else is ``NDRF_<FIELD>`` (for example ``NDRF_API_KEYS=key1,key2``).
+``NDRF_STORE``  the artifact store (the source of truth): a folder, default ``./runs``, or
+                ``s3://bucket/prefix`` (``NDRF_S3_ENDPOINT``; credentials from the AWS variables)
+Everything else is ``NDRF_<FIELD>`` (for example ``NDRF_API_KEYS=key1,key2``); the caps on
+untrusted input are ``NDRF_MAX_<FIELD>`` (:class:`Limits`).
 """
 
 from __future__ import annotations
 
+import hashlib
 from functools import lru_cache
-from pathlib import Path
+from typing import Annotated
 
 from pydantic import AliasChoices, Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
-from typing_extensions import Annotated
 
 
 class Limits(BaseSettings):
-    """Caps on untrusted input; a request over a cap gets a 4xx naming the limit."""
+    """Caps on untrusted input and on what one job may use; a request over a cap gets a 4xx
+    naming the limit, a job that exceeds a budget while running fails naming it."""
 
     model_config = SettingsConfigDict(env_prefix="NDRF_MAX_", extra="ignore")
 
-    resolution: int = Field(1024, ge=1, description="Largest film side in pixels.")
+    resolution: int = Field(1024, ge=1, description="Largest film side in pixels (the job's or the scene's).")
+    sensors: int = Field(64, ge=1, description="Most sensors in a scene.")
     spp: int = Field(4096, ge=1, description="Largest samples per pixel of any rendering in a job.")
     iterations: int = Field(2000, ge=1, description="Most iterations of one job.")
     parameters: int = Field(64, ge=1, description="Most optimized scalars (an RGB value counts 3).")
     upload_bytes: int = Field(64 << 20, ge=1024, description="Largest request body.")
     mesh_bytes: int = Field(32 << 20, ge=1024, description="Largest single uploaded file (mesh, texture).")
-    image_pixels: int = Field(4 << 20, ge=1, description="Largest target image (width x height).")
+    image_pixels: int = Field(4 << 20, ge=1, description="Largest target image (width x height), read from "
+                                                          "its header before it is decoded.")
     training_points: int = Field(65536, ge=64, description="Largest residual batch N x M per step.")
+    training_steps: int = Field(200_000, ge=1, description="Most training steps of one job (warm-up + "
+                                                           "iterations x steps per iteration).")
+    field_parameters: int = Field(1 << 24, ge=1024, description="Most learned numbers in one neural field "
+                                                                 "(hash tables and MLP weights).")
+    job_seconds: float = Field(6 * 3600.0, ge=1.0, description="Wall-clock budget of one job attempt.")
+    job_bytes: int = Field(2 << 30, ge=1 << 20, description="Disk budget of one job's files in the store.")
+    child_memory_bytes: int = Field(8 << 30, ge=256 << 20, description="Address-space limit of the sandboxed "
+                                                                       "process that loads or runs a job.")
+    preflight_seconds: float = Field(120.0, ge=1.0, description="Wall-clock limit of loading a scene at "
+                                                                 "submission.")
+    active_jobs_per_key: int = Field(32, ge=1, description="Most queued or running jobs of one API key.")
+    streams_per_key: int = Field(64, ge=1, description="Most open event streams of one API key.")
+    experiment_runs: int = Field(200, ge=1, description="Most runs of one experiment (grid x samples x seeds, "
+                                                        "appends included).")
 
 
 class Settings(BaseSettings):
@@ -36,24 +55,65 @@ class Settings(BaseSettings):
 
     redis_url: str | None = Field(None, validation_alias=AliasChoices("REDIS_URL", "NDRF_REDIS_URL"),
                                   description="Redis URL; unset runs jobs in-process (embedded).")
-    store: Path = Field(Path("runs"), validation_alias=AliasChoices("NDRF_STORE", "store"),
-                        description="Root folder of the artifact store.")
+    store: str = Field("runs", validation_alias=AliasChoices("NDRF_STORE", "store"),
+                       description="The artifact store: a folder path (one machine, or a shared volume), or "
+                                   "s3://bucket/prefix (an S3-compatible bucket: several machines, no shared disk).")
+    s3_endpoint: str = Field("", description="Endpoint URL of an S3-compatible server (http://host:port); empty: AWS "
+                                             "S3 in AWS_REGION. Credentials come from AWS_ACCESS_KEY_ID and "
+                                             "AWS_SECRET_ACCESS_KEY (or the other usual AWS variables).")
+    s3_presign_bytes: int = Field(0, ge=0, description="Artifacts of at least this many bytes are served by a 307 "
+                                                       "redirect to a pre-signed URL of the bucket instead of through "
+                                                       "the API (0: never; the bucket must be reachable by clients).")
+    s3_presign_seconds: int = Field(300, ge=10, le=7 * 86400, description="Lifetime of a pre-signed URL.")
+    s3_public_endpoint: str = Field("", description="The S3 endpoint as clients reach it, for pre-signed URLs "
+                                                    "(empty: s3_endpoint).")
+    s3_usage_seconds: float = Field(300.0, ge=1.0, description="Seconds the store's total size (/metrics) is "
+                                                               "reused before the bucket is listed again.")
+    scratch: str = Field("", description="Local folder where workers stage scenes for their sandboxed "
+                                         "processes (default: <tmp>/ndrf-scratch).")
     api_keys: Annotated[list[str], NoDecode] = Field(
-        default_factory=list, description="Accepted bearer keys (comma-separated); empty disables auth.")
+        default_factory=list, description="Accepted bearer keys (comma-separated); each key sees only its own "
+                                          "jobs. Empty: no authentication (loopback only, see allow_anonymous).")
+    admin_keys: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="Keys that see and manage every job (comma-separated).")
+    allow_anonymous: bool = Field(False, description="Allow `ndrf serve --host` on a non-loopback address "
+                                                     "without API keys.")
+    token_secret: str = Field("", description="Secret of the short-lived read tokens (default: derived from "
+                                              "the API keys, so every API process agrees).")
+    token_seconds: int = Field(3600, ge=10, le=7 * 86400, description="Lifetime of a read token.")
+    metrics_public: bool = Field(True, description="Serve /metrics without a key (false: admin keys only).")
+    retention_days: float | None = Field(None, gt=0, description="Delete finished jobs older than this many "
+                                                                 "days (unset: keep everything).")
     lease_seconds: float = Field(30.0, ge=1.0, le=600.0,
                                  description="A job whose worker stops renewing its lease for this long is "
                                              "taken over by another worker (renewal every lease/3).")
     max_attempts: int = Field(3, ge=1, le=100, description="Attempts before a job that keeps crashing its "
                                                           "worker is failed.")
     embedded_workers: int = Field(1, ge=1, le=16, description="Worker threads of the embedded mode.")
+    preflight_workers: int = Field(2, ge=1, le=64, description="Scene loads running at once in the API.")
     limits: Limits = Field(default_factory=Limits)
 
-    @field_validator("api_keys", mode="before")
+    @field_validator("api_keys", "admin_keys", mode="before")
     @classmethod
     def _split(cls, value):
         if isinstance(value, str):
             return [k.strip() for k in value.split(",") if k.strip()]
         return value
+
+    @property
+    def auth(self) -> bool:
+        return bool(self.api_keys or self.admin_keys)
+
+    def signing_secret(self) -> bytes:
+        if self.token_secret:
+            return self.token_secret.encode()
+        material = "\n".join(sorted(self.api_keys + self.admin_keys))
+        return hashlib.sha256(b"ndrf-read-token\n" + material.encode()).digest()
+
+
+def key_id(key: str) -> str:
+    """The id a job records as its owner: a hash of the key (the key itself is never stored)."""
+    return hashlib.sha256(key.encode()).hexdigest()[:16]
 
 
 @lru_cache

@@ -1,12 +1,15 @@
-"""One worker: lease a job, run it with a renewed lease, ack it; repeat.
+"""One worker: lease a job, run an attempt of it with a renewed lease, ack it; repeat.
 
-A worker that dies (SIGKILL, OOM, power) stops renewing its lease; after ``lease_seconds``
-another worker's ``lease`` takes the job over (XAUTOCLAIM) and resumes it from its last
-checkpoint. Every attempt gets an id written into the job record; before every write, a run
-checks that the record still names its attempt and that its lease is alive, so a stale attempt
-cannot overwrite its successor's files. A job whose attempts keep dying is failed after
-``max_attempts`` with a clear error. SIGTERM/SIGINT stop the worker at the next iteration
-boundary: the job is checkpointed and handed back to the queue.
+A worker that dies (SIGKILL, OOM, power) stops renewing its lease and its attempt's heartbeat;
+after ``lease_seconds`` another worker's ``lease`` takes the job over and resumes it from its last
+checkpoint. A crash is counted only when the attempt the record names has no live heartbeat: a
+delivery of a job whose attempt still beats is a duplicate and is dropped. Every
+attempt claims the job in its record (``attempt``), and every write of an attempt is fenced on it
+(:mod:`services.jobs.state`), so a stale attempt cannot overwrite its successor's files. A job
+whose attempts keep dying is failed after ``max_attempts``. The job itself runs in a sandboxed
+child process (:mod:`services.jobs.runner`): whatever the job does, the worker goes on.
+SIGTERM/SIGINT stop the worker at the job's next training step: it is checkpointed and handed
+back to the queue.
 """
 
 from __future__ import annotations
@@ -17,27 +20,31 @@ import signal
 import socket
 import threading
 import uuid
-from typing import Callable
+from collections.abc import Callable
+from pathlib import Path
 
-from pydantic import ValidationError
-
-from schemas.job import JobSpec
-from schemas.records import FINISHED
-from services.jobs import JobService, UnknownJob
-from services.queue.base import EventBus, JobQueue, Lease
-from services.store.layout import JobFolder, now_iso
+from schemas.records import ACTIVE, JobStatus
+from services.jobs.runner import AttemptResult, AttemptRunner
+from services.jobs.service import JobService
+from services.jobs.state import Conflict, Fenced, UnknownJob
+from services.queue.base import JobQueue, Lease, Renewal
+from services.settings import Limits
 
 log = logging.getLogger(__name__)
 
 
 class Worker:
-    def __init__(self, service: JobService, queue: JobQueue, events: EventBus, *, lease_seconds: float,
+    def __init__(self, service: JobService, queue: JobQueue, *, limits: Limits, scratch: Path, lease_seconds: float,
                  max_attempts: int, name: str | None = None, reconcile: Callable[[], None] | None = None):
-        self.service, self.queue, self.events = service, queue, events
+        self.service, self.queue = service, queue
         self.lease_seconds, self.max_attempts = lease_seconds, max_attempts
         self.name = name or f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:6]}"
+        self.runner = AttemptRunner(service.states, limits, scratch)
         self.stopping = threading.Event()
         self.reconcile = reconcile or (lambda: None)
+        self.consumer = f"{self.name}/{uuid.uuid4().hex[:8]}"   # unique even if a restarted worker reuses its name
+        self.current: str | None = None
+        self.attempt: str | None = None
 
     # ---------------------------------------------------------------- the loop
 
@@ -53,7 +60,7 @@ class Worker:
             while not self.stopping.is_set():
                 try:
                     self.reconcile()
-                    lease = self.queue.lease(self.name, block_seconds=1.0 if burst else 5.0)
+                    lease = self.queue.lease(self.consumer, block_seconds=1.0 if burst else 5.0)
                 except Exception as exc:  # the queue is unreachable (Redis restarting): wait and retry
                     log.warning("worker %s: queue unavailable (%s); retrying", self.name, exc)
                     self.stopping.wait(1.0)
@@ -66,8 +73,8 @@ class Worker:
                 self.perform(lease)
             else:
                 reason = "stop requested"
-        except Exception:
-            reason = "crashed"
+        except BaseException as exc:
+            reason = f"crashed: {type(exc).__name__}: {exc}"
             log.exception("worker %s crashed", self.name)
             raise
         finally:
@@ -75,118 +82,147 @@ class Worker:
         return reason
 
     def request_stop(self) -> None:
-        log.info("worker %s: stop requested, finishing the current iteration", self.name)
+        log.info("worker %s: stop requested, stopping the current job at its next training step", self.name)
         self.stopping.set()
 
     # ------------------------------------------------------------ one job
 
     def perform(self, lease: Lease) -> None:
+        """Run one leased job; never raises for anything the job does (the job fails with it)."""
+        self.current, self.attempt = lease.job_id, None
         try:
-            folder = self.service.folder(lease.job_id)
+            self._perform(lease)
+        except Exception as exc:  # a bug or an outage around the job: the job fails, the worker goes on
+            log.exception("worker %s: job %s", self.name, lease.job_id)
+            try:
+                fence: dict[str, str] = {"fence": self.attempt} if self.attempt else {}
+                self.service.states.transition(lease.job_id, JobStatus.FAILED, expect=ACTIVE, **fence,
+                                               error=f"the worker failed running the job: {type(exc).__name__}: {exc}")
+                self._ack(lease, self.attempt)
+            except Exception as inner:  # the store is away too: the lease expires, another worker retries
+                log.error("worker %s: could not record the failure of job %s: %s", self.name, lease.job_id, inner)
+        finally:
+            self.current = self.attempt = None
+
+    def _perform(self, lease: Lease) -> None:
+        states = self.service.states
+        try:
+            record = states.get(lease.job_id)
         except UnknownJob:
             log.warning("job %s is not in the store: dropping it from the queue", lease.job_id)
-            self.queue.ack(lease)
-            return
-        record = folder.read("record.json")
-        if record["status"] in FINISHED:
-            log.info("job %s is already %s: acking", lease.job_id, record["status"])
-            self.queue.ack(lease)
-            return
-        if self.service.cancel_requested(folder):
-            self._close(folder, record, "canceled", None)
-            self.queue.ack(lease)
-            return
-        crashes = int(record.get("crashes", 0)) + (record["status"] == "running")
+            return self._ack(lease)
+        if record.status.finished:
+            log.info("job %s is already %s: acking", lease.job_id, record.status.value)
+            return self._ack(lease)
+        running = record.status is JobStatus.RUNNING and record.attempt is not None
+        if running and self.queue.alive(lease.job_id, str(record.attempt)):
+            # Its attempt still beats: a duplicate delivery, not a crash. The live attempt holds
+            # the job's marker; if it dies later, its own delivery (or the reconciler) brings it back.
+            log.warning("job %s: attempt %s is alive; dropping delivery %s", lease.job_id, record.attempt,
+                        lease.entry_id)
+            return self._ack(lease)
+        if record.cancel_requested:
+            states.transition(lease.job_id, JobStatus.CANCELED, expect=ACTIVE)
+            return self._ack(lease)
+        crashes = record.crashes + running       # running, and its heartbeat expired: that attempt died
         if crashes >= self.max_attempts:
-            self._close(folder, record, "failed",
-                        f"the job crashed its worker {crashes} times (max_attempts={self.max_attempts}); "
-                        f"last attempt {record.get('attempt')}")
-            self.queue.ack(lease)
-            return
-        attempt = f"{self.name}#{int(record.get('attempts', 0)) + 1}"
-        record.update(attempts=int(record.get("attempts", 0)) + 1, attempt=attempt, crashes=crashes,
-                      worker=self.name, updated=now_iso())
-        folder.write("record.json", record)
-        log.info("worker %s runs job %s (attempt %s, delivery %d)", self.name, lease.job_id, attempt, lease.delivery)
+            states.transition(lease.job_id, JobStatus.FAILED, expect=ACTIVE, crashes=crashes,
+                              error=f"the job crashed its worker {crashes} times (max_attempts={self.max_attempts}); "
+                                    f"last attempt {record.attempt}")
+            return self._ack(lease)
+        attempt = f"{self.name}#{record.attempts + 1}"
+        try:
+            states.transition(lease.job_id, JobStatus.RUNNING, expect=ACTIVE, expect_attempt=record.attempt,
+                              attempt=attempt, attempts=record.attempts + 1, crashes=crashes, worker=self.name,
+                              note=f"took over from {record.attempt} (its heartbeat expired)" if running else None)
+        except Conflict as exc:
+            log.info("job %s: not claimed (%s)", lease.job_id, exc)
+            return self._ack(lease)
+        self.attempt = attempt
+        log.info("worker %s runs job %s (attempt %s, delivery %d, took over from %s)", self.name, lease.job_id,
+                 attempt, lease.delivery, record.attempt if running else None)
+        result = self._run_with_lease(lease, attempt)
+        if result.status == "fenced":
+            return self._fenced(lease, attempt)
+        if result.status == JobStatus.QUEUED.value:
+            return self._ack(lease, attempt, requeue=True)   # interrupted: hand it back at once
+        self._ack(lease, attempt)
 
-        lost = threading.Event()
-        done = threading.Event()
-        heartbeat = threading.Thread(target=self._heartbeat, args=(lease, lost, done), daemon=True,
+    def _fenced(self, lease: Lease, attempt: str) -> None:
+        """The attempt stopped without finishing: the lease was lost, or another attempt owns the
+        record. If the record still names it, nobody took the job over yet: hand it back (not a
+        crash). Ack only what is still ours (the new owner's delivery is left alone)."""
+        states = self.service.states
+        try:
+            record = states.get(lease.job_id)
+            if record.attempt == attempt and record.status is JobStatus.RUNNING:
+                states.transition(lease.job_id, JobStatus.QUEUED, fence=attempt,
+                                  note="lease lost; handed back, resumes from its checkpoint")
+                self.queue.enqueue(lease.job_id)       # a no-op if the job is queued or leased
+        except (Fenced, Conflict, UnknownJob) as exc:
+            log.info("job %s: %s", lease.job_id, exc)
+        self._ack(lease, attempt)
+
+    def _run_with_lease(self, lease: Lease, attempt: str) -> AttemptResult:
+        lost, done = threading.Event(), threading.Event()
+        try:
+            first = self.queue.renew(lease, attempt)   # the first heartbeat, before any work
+        except Exception as exc:  # the queue is away: the heartbeat thread keeps trying
+            log.warning("first lease renewal of job %s failed: %s", lease.job_id, exc)
+            first = Renewal.KEPT
+        if not first:
+            return AttemptResult("fenced", "the lease was lost before the attempt started")
+        heartbeat = threading.Thread(target=self._heartbeat, args=(lease, attempt, lost, done), daemon=True,
                                      name=f"lease-{lease.job_id}")
         heartbeat.start()
-        try:
-            outcome = self._run(folder, attempt, lost)
-        finally:
-            done.set()
-            heartbeat.join()
-        if outcome == "fenced":
-            if folder.read("record.json", {}).get("attempt") == attempt:
-                # Nobody took over: the lease vanished with Redis' data (a restart without
-                # persistence). Not a crash: hand the job back, it resumes from its checkpoint.
-                self._requeue(folder, lease.job_id, "lease lost (queue data lost); re-enqueued")
-            return                                      # otherwise the new owner acks
-        if outcome == "interrupted":
-            self.queue.enqueue(lease.job_id)            # hand it back at once
-        self._ack(lease)
 
-    def _ack(self, lease: Lease) -> None:
-        """Ack, retrying briefly; if the queue stays away the entry is delivered again later and
-        acked then (the record says the job is finished)."""
-        for wait in (0.0, 0.5, 2.0):
-            self.stopping.wait(wait)
-            try:
-                self.queue.ack(lease)
-                return
-            except Exception as exc:
-                log.warning("ack of job %s failed: %s", lease.job_id, exc)
-
-    def _run(self, folder: JobFolder, attempt: str, lost: threading.Event) -> str:
-        from services.optimize.loop import Fenced, InverseRenderingRun, RunHooks
-
-        def guard() -> None:
-            if lost.is_set() or folder.read("record.json", {}).get("attempt") != attempt:
-                raise Fenced(attempt)
-
-        def should_stop() -> str | None:
-            if self.service.cancel_requested(folder):
+        def stop() -> str | None:
+            if self.service.cancel_requested(lease.job_id):
                 return "canceled"
             return "interrupted" if self.stopping.is_set() else None
 
         try:
-            spec = JobSpec.model_validate(folder.read("spec.json"))
-        except ValidationError as exc:
-            self._close(folder, folder.read("record.json"), "failed", f"stored spec is invalid: {exc}")
-            return "failed"
-        hooks = RunHooks(on_event=lambda event: self.events.publish(folder.root.name, event),
-                         should_stop=should_stop, guard=guard, attempt=attempt)
-        try:
-            summary = InverseRenderingRun(spec, folder, hooks).execute(resume=True)
-        except Fenced:
-            return "fenced"
-        return summary["status"]
+            return self.runner.run(lease.job_id, attempt, lost=lost, stop=stop)
+        finally:
+            done.set()
+            heartbeat.join()
 
-    def _requeue(self, folder: JobFolder, job_id: str, note: str) -> None:
-        record = folder.read("record.json")
-        record.update(status="queued", updated=now_iso())
-        folder.write("record.json", record)
-        self.events.publish(job_id, folder.append_event({"type": "status", "status": "queued", "note": note}))
-        self.queue.enqueue(job_id)
-        log.warning("job %s: %s", job_id, note)
+    def _ack(self, lease: Lease, attempt: str | None = None, requeue: bool = False) -> None:
+        """Ack (or hand back) what is still ours, retrying briefly; if the queue stays away the
+        entry is delivered again later and acked then (the record says the job is finished)."""
+        for wait in (0.0, 0.5, 2.0):
+            self.stopping.wait(wait)
+            try:
+                done = self.queue.requeue(lease, attempt) if requeue else self.queue.ack(lease, attempt)
+                if not done:
+                    log.info("job %s: delivery %s now belongs to another worker; left alone", lease.job_id,
+                             lease.entry_id)
+                return
+            except Exception as exc:
+                log.warning("ack of job %s failed: %s", lease.job_id, exc)
 
-    def _heartbeat(self, lease: Lease, lost: threading.Event, done: threading.Event) -> None:
+    def _heartbeat(self, lease: Lease, attempt: str, lost: threading.Event, done: threading.Event) -> None:
         while not done.wait(self.lease_seconds / 3):
             try:
-                if not self.queue.renew(lease, self.name):
-                    log.error("worker %s lost the lease of job %s", self.name, lease.job_id)
-                    lost.set()
-                    return
-            except Exception as exc:  # Redis briefly unreachable: keep trying until the lease would expire
+                renewal = self.queue.renew(lease, attempt)
+            except Exception as exc:  # Redis briefly unreachable: keep trying (ownership decides later)
                 log.warning("lease renewal of job %s failed: %s", lease.job_id, exc)
+                continue
+            if renewal is Renewal.ADOPTED:
+                log.warning("worker %s: the queue had lost job %s (Redis restarted empty); attempt %s goes on",
+                            self.name, lease.job_id, attempt)
+            elif not renewal:
+                log.error("worker %s lost the lease of job %s", self.name, lease.job_id)
+                lost.set()
+                return
 
-    def _close(self, folder: JobFolder, record: dict, status: str, error: str | None) -> None:
-        record.update(status=status, error=error, updated=now_iso())
-        folder.write("record.json", record)
-        event = folder.append_event({"type": "status", "status": status, "error": error})
-        self.events.publish(folder.root.name, event)
-        log.warning("job %s %s: %s", folder.root.name, status, error) if error else log.info(
-            "job %s %s", folder.root.name, status)
+
+def make_worker(runtime, name: str | None = None) -> Worker:
+    """A worker of a :class:`services.runtime.Runtime` (the factory the runtime's embedded mode and
+    ``ndrf worker`` use)."""
+    from services.runtime import scratch_folder
+
+    settings = runtime.settings
+    return Worker(runtime.service, runtime.queue, limits=settings.limits, scratch=scratch_folder(settings),
+                  lease_seconds=settings.lease_seconds, max_attempts=settings.max_attempts, name=name,
+                  reconcile=runtime.reconcile_periodically)

@@ -1,4 +1,9 @@
-"""Per-iteration records and files of a job: gradient images, renders, targets, checkpoints."""
+"""Per-iteration records and files of a job: gradient images, renders, targets, checkpoints.
+
+Files are streamed from the store (a folder's file is sent as it is; other stores are read in
+chunks, or redirected to a pre-signed URL when the store is configured so), never read whole into
+memory; one scalar's gradient image is read as a byte range of the stack.
+"""
 
 from __future__ import annotations
 
@@ -7,23 +12,48 @@ import re
 from typing import Annotated
 
 import numpy as np
-from fastapi import APIRouter, Path as PathParam, Query
-from fastapi.responses import FileResponse, Response
+import numpy.lib.format as npy_format
+from fastapi import APIRouter, Query
+from fastapi import Path as PathParam
+from fastapi.responses import FileResponse, RedirectResponse, Response, StreamingResponse
 
-from api.deps import Authenticated, RuntimeDep
-from api.problems import Problem, ProblemError
-from api.routes.jobs import folder_or_404
+from api.deps import ReaderDep, RuntimeDep, files_or_404
+from api.problems import ProblemDetails, ProblemError
 from schemas.records import IterationRecord
+from services.store.job import JobFiles
 
-router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["artifacts"], dependencies=[Authenticated],
-                   responses={401: {"model": Problem}, 404: {"model": Problem}})
+router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["artifacts"],
+                   responses={401: {"model": ProblemDetails}, 404: {"model": ProblemDetails}})
 
 Iteration = Annotated[int, PathParam(ge=0, le=10**7, description="0-based iteration index.")]
 PNG, NPY = "image/png", "application/x-npy"
+CHUNK = 1 << 16
 
 
 def _missing(what: str) -> ProblemError:
     return ProblemError(404, "Not found", f"{what} does not exist (yet)", slug="missing-artifact")
+
+
+def send(files: JobFiles, key: str, media_type: str, what: str, filename: str | None = None):
+    """Stream one object of the store (or redirect to a pre-signed URL of it)."""
+    store = files.store
+    path = store.local_path(key)
+    if path is not None:
+        return FileResponse(path, media_type=media_type, filename=filename)
+    url = store.redirect_url(key)
+    if url is not None:
+        return RedirectResponse(url, status_code=307)
+    handle = store.open(key)
+    if handle is None:
+        raise _missing(what)
+
+    def chunks():
+        with handle:
+            while block := handle.read(CHUNK):
+                yield block
+
+    headers = {"Content-Disposition": f'attachment; filename="{filename}"'} if filename else None
+    return StreamingResponse(chunks(), media_type=media_type, headers=headers)
 
 
 @router.get("/iterations", response_model=list[IterationRecord], summary="Iteration records",
@@ -31,23 +61,23 @@ def _missing(what: str) -> ProblemError:
                 "description": "Sequence number of the job's last event when the records were read: follow "
                                "the event stream with ?after=<it> (an iteration listed here may be sent again).",
                 "schema": {"type": "integer"}}}}})
-def iterations(job_id: str, runtime: RuntimeDep, response: Response,
+def iterations(job_id: str, runtime: RuntimeDep, response: Response, caller: ReaderDep,
                after: Annotated[int, Query(ge=-1, description="Only iterations with a larger index.")] = -1):
     """Loss, parameters, dz/dp, seconds per phase and residual norms of every completed iteration."""
-    folder = folder_or_404(runtime, job_id)
-    events, _ = folder.read_events(0)    # before the records: each record is written before its event
+    files = files_or_404(runtime, job_id, caller)
+    events, _ = files.store.read_events(files.prefix)    # before the records: each record precedes its event
     response.headers["X-Last-Event-ID"] = str(events[-1].get("seq", 0) if events else 0)
-    return [folder.iteration_record(k) for k in folder.iterations() if k > after]
+    return [files.iteration_record(k) for k in files.iterations() if k > after]
 
 
-@router.get("/iterations/{k}/render.png", response_class=FileResponse, summary="Candidate render",
-            responses={200: {"content": {PNG: {}}}})
-def render_png(job_id: str, k: Iteration, runtime: RuntimeDep,
+@router.get("/iterations/{k}/render.png", summary="Candidate render", responses={200: {"content": {PNG: {}}}})
+def render_png(job_id: str, k: Iteration, runtime: RuntimeDep, caller: ReaderDep,
                sensor: Annotated[int, Query(ge=0, le=64, description="Sensor index.")] = 0):
-    path = folder_or_404(runtime, job_id).iteration_dir(k) / ("render.png" if sensor == 0 else f"render-{sensor}.png")
-    if not path.is_file():
+    files = files_or_404(runtime, job_id, caller)
+    key = files.iteration_key(k, "render.png" if sensor == 0 else f"render-{sensor}.png")
+    if not files.store.exists(key):
         raise _missing(f"render of iteration {k}")
-    return FileResponse(path, media_type=PNG)
+    return send(files, key, PNG, f"render of iteration {k}")
 
 
 _GRADIENT = re.compile(r"^(\d{1,4})\.(png|npy)$")
@@ -55,7 +85,7 @@ _GRADIENT = re.compile(r"^(\d{1,4})\.(png|npy)$")
 
 @router.get("/iterations/{k}/gradients/{name}", summary="Gradient image of one scalar",
             responses={200: {"content": {PNG: {}, NPY: {}}}})
-def gradient(job_id: str, k: Iteration, runtime: RuntimeDep,
+def gradient(job_id: str, k: Iteration, runtime: RuntimeDep, caller: ReaderDep,
              name: Annotated[str, PathParam(description="'<p>.png' (preview, diverging colour map) or '<p>.npy' "
                                                         "(float32 H x W x 3) for scalar p.")]):
     match = _GRADIENT.match(name)
@@ -63,45 +93,73 @@ def gradient(job_id: str, k: Iteration, runtime: RuntimeDep,
         raise ProblemError(422, "Invalid request", "name must be '<scalar index>.png' or '<scalar index>.npy'",
                            slug="invalid-request", errors=[("name", "expected <p>.png or <p>.npy")])
     p, kind = int(match.group(1)), match.group(2)
-    folder = folder_or_404(runtime, job_id).iteration_dir(k)
+    files = files_or_404(runtime, job_id, caller)
     if kind == "png":
-        path = folder / f"gradient-{p}.png"
-        if not path.is_file():
+        key = files.iteration_key(k, f"gradient-{p}.png")
+        if not files.store.exists(key):
             raise _missing(f"gradient preview {p} of iteration {k}")
-        return FileResponse(path, media_type=PNG)
-    stack = folder / "gradients.npy"
-    if not stack.is_file():
+        return send(files, key, PNG, f"gradient preview {p}")
+    key = files.iteration_key(k, "gradients.npy")
+    image = _stack_slice(files, key, p)
+    if image is None:
         raise _missing(f"gradient data of iteration {k}")
-    images = np.load(stack, mmap_mode="r")
-    if p >= images.shape[0]:
-        raise _missing(f"scalar {p} (the job has {images.shape[0]})")
+    if isinstance(image, int):
+        raise _missing(f"scalar {p} (the job has {image})")
     buffer = io.BytesIO()
-    np.save(buffer, np.ascontiguousarray(images[p]))
+    np.save(buffer, image)
     return Response(buffer.getvalue(), media_type=NPY,
                     headers={"Content-Disposition": f'attachment; filename="{job_id}-{k}-{p}.npy"'})
 
 
+def _stack_slice(files: JobFiles, key: str, p: int) -> np.ndarray | int | None:
+    """Image ``p`` of the ``(P, H, W, 3)`` stack ``key``, read as one byte range after the .npy
+    header; the stack's length P when ``p`` is out of range; None when there is no stack."""
+    head = files.store.get_range(key, 0, 4096)
+    if head is None:
+        return None
+    stream = io.BytesIO(head)
+    version = npy_format.read_magic(stream)
+    reader = {(1, 0): npy_format.read_array_header_1_0, (2, 0): npy_format.read_array_header_2_0}.get(version)
+    if reader is None:
+        raise ProblemError(500, "Unreadable artifact", f"unsupported .npy version {version}", slug="unreadable-artifact")
+    shape, fortran, dtype = reader(stream)
+    if fortran or dtype.hasobject or len(shape) < 1:
+        raise ProblemError(500, "Unreadable artifact", "the gradient stack is not a C-ordered numeric array",
+                           slug="unreadable-artifact")
+    if p >= shape[0]:
+        return int(shape[0])
+    count = int(np.prod(shape[1:]))
+    data = files.store.get_range(key, stream.tell() + p * count * dtype.itemsize, count * dtype.itemsize)
+    if data is None or len(data) != count * dtype.itemsize:
+        return None
+    return np.frombuffer(data, dtype=dtype).reshape(shape[1:])
+
+
 @router.get("/iterations/{k}/gradients.npy", summary="All gradient images of an iteration",
             responses={200: {"content": {NPY: {}}}})
-def gradients_stack(job_id: str, k: Iteration, runtime: RuntimeDep):
-    path = folder_or_404(runtime, job_id).iteration_dir(k) / "gradients.npy"
-    if not path.is_file():
+def gradients_stack(job_id: str, k: Iteration, runtime: RuntimeDep, caller: ReaderDep):
+    files = files_or_404(runtime, job_id, caller)
+    key = files.iteration_key(k, "gradients.npy")
+    if not files.store.exists(key):
         raise _missing(f"gradient data of iteration {k}")
-    return FileResponse(path, media_type=NPY, filename=f"{job_id}-{k}-gradients.npy")
+    return send(files, key, NPY, f"gradient data of iteration {k}", filename=f"{job_id}-{k}-gradients.npy")
 
 
 @router.get("/targets/{sensor}.png", summary="Target image", responses={200: {"content": {PNG: {}}}})
-def target_png(job_id: str, runtime: RuntimeDep, sensor: Annotated[int, PathParam(ge=0, le=64)]):
-    path = folder_or_404(runtime, job_id).target_path(sensor, "png")
-    if not path.is_file():
+def target_png(job_id: str, runtime: RuntimeDep, caller: ReaderDep, sensor: Annotated[int, PathParam(ge=0, le=64)]):
+    files = files_or_404(runtime, job_id, caller)
+    key = files.target_key(sensor, "png")
+    if not files.store.exists(key):
         raise _missing(f"target of sensor {sensor}")
-    return FileResponse(path, media_type=PNG)
+    return send(files, key, PNG, f"target of sensor {sensor}")
 
 
-@router.get("/checkpoints/latest", summary="Latest checkpoint", responses={200: {"content": {"application/octet-stream": {}}}})
-def latest_checkpoint(job_id: str, runtime: RuntimeDep):
+@router.get("/checkpoints/latest", summary="Latest checkpoint",
+            responses={200: {"content": {"application/octet-stream": {}}}})
+def latest_checkpoint(job_id: str, runtime: RuntimeDep, caller: ReaderDep):
     """The torch checkpoint (fields, optimizers, parameters, Adam state, RNG, next iteration)."""
-    path = folder_or_404(runtime, job_id).checkpoint_path
-    if not path.is_file():
+    files = files_or_404(runtime, job_id, caller)
+    key = files.key(JobFiles.CHECKPOINT)
+    if not files.store.exists(key):
         raise _missing("a checkpoint")
-    return FileResponse(path, media_type="application/octet-stream", filename=f"{job_id}-checkpoint.pt")
+    return send(files, key, "application/octet-stream", "a checkpoint", filename=f"{job_id}-checkpoint.pt")

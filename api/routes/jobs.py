@@ -1,120 +1,125 @@
-"""``/v1/jobs``: submit, list, inspect and cancel inverse-rendering jobs."""
+"""``/v1/jobs``: submit, list, inspect, cancel and delete inverse-rendering jobs."""
 
 from __future__ import annotations
 
-import asyncio
 import logging
-import tempfile
-import threading
-from pathlib import Path
 from typing import Annotated
 
-from fastapi import APIRouter, Header, Query, Response
+import anyio
+from fastapi import APIRouter, Depends, Header, Query, Response
 
-from api.deps import Authenticated, RuntimeDep
-from api.problems import Problem, ProblemError
+from api.deps import CallerDep, ReaderDep, RuntimeDep, SettingsDep, not_found, record_or_404, require_caller
+from api.problems import ProblemDetails, ProblemError
 from api.views import job_public
+from schemas.errors import InvalidJob
 from schemas.job import JobSpec
 from schemas.records import JobAccepted, JobPage, JobPublic, JobStatus
-from services.errors import JobError
-from services.jobs import JobConflict, UnknownJob
-from services.limits import check_limits
+from services.jobs.preflight import preflight
+from services.jobs.service import TooManyJobs
+from services.jobs.state import Conflict, UnknownJob
+from services.runtime import Runtime
 
 log = logging.getLogger(__name__)
 
-router = APIRouter(prefix="/v1/jobs", tags=["jobs"], dependencies=[Authenticated],
-                   responses={401: {"model": Problem, "description": "Missing or wrong API key."}})
-
-_preflight_lock = threading.Lock()  # one scene load at a time in the API process
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"],
+                   responses={401: {"model": ProblemDetails, "description": "Missing or wrong API key."}})
 
 
-def folder_or_404(runtime, job_id: str):
+async def validate_job(spec: JobSpec, runtime: Runtime) -> None:
+    """Caps, sandbox, and the scene loaded in a sandboxed child (a 422 naming the field)."""
+    limiter = runtime.blocking
     try:
-        return runtime.service.folder(job_id)
-    except UnknownJob:
-        raise ProblemError(404, "Not found", f"no job {job_id!r}", slug="unknown-job") from None
-
-
-def _validate(spec: JobSpec, runtime) -> None:
-    """Caps, then the solver's own preflight: the sandbox of uploaded files, the scene loads, the
-    keys exist, targets decode and fit the films. Raises JobError naming the field."""
-    limits = runtime.settings.limits
-    check_limits(spec, limits)
-    from services.optimize.setup import preflight
-    from services.scene.sandbox import UploadLimits
-
-    upload = UploadLimits(max_file_bytes=limits.mesh_bytes, max_total_bytes=limits.upload_bytes)
-    with _preflight_lock, tempfile.TemporaryDirectory(prefix="ndrf-preflight-") as tmp:
-        preflight(spec, folder=Path(tmp) / "scene", max_scalars=limits.parameters, upload_limits=upload)
+        await anyio.to_thread.run_sync(preflight, spec, runtime.settings.limits, limiter=limiter)
+    except InvalidJob as exc:
+        raise ProblemError(422, "Invalid job", str(exc), slug="invalid-job", errors=[(exc.field, exc.message)]) from None
 
 
 @router.post("", status_code=202, response_model=JobAccepted,
-             responses={409: {"model": Problem}, 413: {"model": Problem}, 422: {"model": Problem}},
+             responses={409: {"model": ProblemDetails}, 413: {"model": ProblemDetails},
+                        422: {"model": ProblemDetails}, 429: {"model": ProblemDetails}},
              summary="Submit a job")
-async def submit_job(spec: JobSpec, response: Response, runtime: RuntimeDep,
+async def submit_job(spec: JobSpec, response: Response, runtime: RuntimeDep, caller: CallerDep,
                      idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key", max_length=200,
                                                                    description="Retrying with the same key returns "
-                                                                               "the same job.")] = None):
+                                                                               "the same job (keys are per API key).")]
+                     = None):
     """Validate a job (schema, caps, sandbox, scene and targets) and queue it. Answers ``202`` with
     the job id and a ``Location`` header; a bad job is a ``422`` naming the field."""
     service = runtime.service
     if idempotency_key:
-        existing = service.find_idempotent(idempotency_key)
+        existing = await anyio.to_thread.run_sync(service.find_idempotent, caller, idempotency_key,
+                                                  limiter=runtime.blocking)
         if existing is not None:
-            record = service.record(existing)
-            if record.get("fingerprint") not in (None, spec.fingerprint()):
-                raise ProblemError(409, "Conflict", "this Idempotency-Key was used for a different job",
-                                   slug="idempotency-conflict")
-            return _accepted(response, existing, record["status"])
+            return _accepted(response, existing.id, existing.status, spec, existing.fingerprint)
+    await validate_job(spec, runtime)
+
+    def submit():
+        return service.submit(spec, caller, idempotency_key, max_active=runtime.settings.limits.active_jobs_per_key)
+
     try:
-        await asyncio.to_thread(_validate, spec, runtime)
-    except JobError as exc:
-        raise ProblemError(422, "Invalid job", str(exc), slug="invalid-job", errors=[(exc.field, exc.message)]) from None
-    try:
-        job_id, _ = service.submit(spec, idempotency_key, fingerprint=spec.fingerprint())
-    except JobConflict as exc:
+        record, _ = await anyio.to_thread.run_sync(submit, limiter=runtime.blocking)
+    except Conflict as exc:
         raise ProblemError(409, "Conflict", str(exc), slug="idempotency-conflict") from None
-    return _accepted(response, job_id, service.record(job_id)["status"])
+    except TooManyJobs as exc:
+        raise ProblemError(429, "Too many jobs", str(exc), slug="too-many-jobs", headers={"Retry-After": "30"}) from None
+    return _accepted(response, record.id, record.status, spec, record.fingerprint)
 
 
-def _accepted(response: Response, job_id: str, status: str) -> JobAccepted:
+def _accepted(response: Response, job_id: str, status: JobStatus, spec: JobSpec, fingerprint: str | None) -> JobAccepted:
+    if fingerprint not in (None, spec.fingerprint()):
+        raise ProblemError(409, "Conflict", "this Idempotency-Key was used for a different job",
+                           slug="idempotency-conflict")
     base = f"/v1/jobs/{job_id}"
     response.headers["Location"] = base
     return JobAccepted(id=job_id, status=status, links={"self": base, "events": f"{base}/events",
                                                         "iterations": f"{base}/iterations", "cancel": f"{base}/cancel"})
 
 
-@router.get("", response_model=JobPage, summary="List jobs")
-def list_jobs(runtime: RuntimeDep,
+@router.get("", response_model=JobPage, summary="List jobs", dependencies=[Depends(require_caller)])
+def list_jobs(runtime: RuntimeDep, settings: SettingsDep, caller: CallerDep,
               status: Annotated[JobStatus | None, Query(description="Only jobs with this status.")] = None,
               limit: Annotated[int, Query(ge=1, le=200, description="Page size.")] = 50,
               cursor: Annotated[str | None, Query(pattern="^[0-9a-f]{20}$", description="From a previous page.")] = None):
-    """Jobs, newest first, ``limit`` per page."""
-    items, next_cursor = [], None
-    for record in runtime.service.records(status):
-        if cursor is not None and record["id"] >= cursor:
-            continue
+    """The caller's jobs (every job for an admin key), newest first, ``limit`` per page."""
+    items: list[JobPublic] = []
+    next_cursor = None
+    for record in runtime.service.records(caller, status, before=cursor):
         if len(items) == limit:
             next_cursor = items[-1].id
             break
-        items.append(job_public(runtime.service.folder(record["id"])))
+        items.append(job_public(record, runtime.service.states.files(record.id), settings))
     return JobPage(items=items, next_cursor=next_cursor)
 
 
-@router.get("/{job_id}", response_model=JobPublic, responses={404: {"model": Problem}}, summary="A job")
-def get_job(job_id: str, runtime: RuntimeDep):
+@router.get("/{job_id}", response_model=JobPublic, responses={404: {"model": ProblemDetails}}, summary="A job")
+def get_job(job_id: str, runtime: RuntimeDep, settings: SettingsDep, caller: ReaderDep):
     """Status, current iteration, latest parameters and metrics, plan, error."""
-    return job_public(folder_or_404(runtime, job_id))
+    record = record_or_404(runtime, job_id, caller)
+    return job_public(record, runtime.service.states.files(job_id), settings)
 
 
 @router.post("/{job_id}/cancel", status_code=202, response_model=JobPublic,
-             responses={404: {"model": Problem}, 409: {"model": Problem}}, summary="Cancel a job")
-def cancel_job(job_id: str, runtime: RuntimeDep):
-    """A queued job is canceled at once; a running one stops at its next iteration boundary and
-    keeps its artifacts. Canceling a finished job is a ``409``."""
-    folder_or_404(runtime, job_id)
+             responses={404: {"model": ProblemDetails}, 409: {"model": ProblemDetails}}, summary="Cancel a job")
+def cancel_job(job_id: str, runtime: RuntimeDep, settings: SettingsDep, caller: CallerDep):
+    """A queued job is canceled at once; a running one stops at its next training step and keeps
+    its artifacts. Canceling a finished job is a ``409``."""
     try:
-        runtime.service.cancel(job_id)
-    except JobConflict as exc:
+        record = runtime.service.cancel(job_id, caller)
+    except UnknownJob:
+        raise not_found(job_id) from None
+    except Conflict as exc:
         raise ProblemError(409, "Conflict", str(exc), slug="job-finished") from None
-    return job_public(runtime.service.folder(job_id))
+    return job_public(record, runtime.service.states.files(job_id), settings)
+
+
+@router.delete("/{job_id}", status_code=204, responses={404: {"model": ProblemDetails}, 409: {"model": ProblemDetails}},
+               summary="Delete a job")
+def delete_job(job_id: str, runtime: RuntimeDep, caller: CallerDep):
+    """Delete a finished job and all its files (cancel an active one first: ``409``)."""
+    try:
+        runtime.service.delete(job_id, caller)
+    except UnknownJob:
+        raise not_found(job_id) from None
+    except Conflict as exc:
+        raise ProblemError(409, "Conflict", str(exc), slug="job-active") from None
+    return Response(status_code=204)

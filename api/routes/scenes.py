@@ -1,21 +1,22 @@
-"""``/v1/scenes``: the built-in scenes and the differentiable parameters of a scene."""
+"""``/v1/scenes``: the built-in scenes and the differentiable parameters of a scene (loaded in a
+sandboxed child process, like a job's)."""
 
 from __future__ import annotations
 
-import asyncio
-import tempfile
-from pathlib import Path
-
-from fastapi import APIRouter
+import anyio
+from fastapi import APIRouter, Depends
 from pydantic import BaseModel, Field
 
-from api.deps import Authenticated, RuntimeDep
-from api.problems import Problem, ProblemError
-from api.routes.jobs import _preflight_lock
-from schemas.job import XmlScene
+from api.deps import RuntimeDep, require_caller
+from api.problems import ProblemDetails, ProblemError
+from schemas.errors import InvalidJob
+from schemas.job import BuiltinScene, SceneSpec, XmlScene
+from schemas.scenes import BUILTIN_SCENES
+from services.jobs.preflight import describe_scene
+from services.runtime import Runtime
 
-router = APIRouter(prefix="/v1/scenes", tags=["scenes"], dependencies=[Authenticated],
-                   responses={401: {"model": Problem}})
+router = APIRouter(prefix="/v1/scenes", tags=["scenes"], dependencies=[Depends(require_caller)],
+                   responses={401: {"model": ProblemDetails}})
 
 
 class SceneSummary(BaseModel):
@@ -38,48 +39,29 @@ class SceneParameters(BaseModel):
 
 @router.get("", response_model=list[SceneSummary], summary="Built-in scenes")
 def list_scenes():
-    from services.scene.builtin import BUILTIN_SCENES
-
-    return [SceneSummary(name=name, description=text) for name, (_, text) in BUILTIN_SCENES.items()]
+    return [SceneSummary(name=name, description=text) for name, text in BUILTIN_SCENES.items()]
 
 
-def _describe(**source) -> SceneParameters:
-    from services.scene.load import load_scene
-    from services.scene.params import differentiable_parameters
-
-    with _preflight_lock, tempfile.TemporaryDirectory(prefix="ndrf-scene-") as tmp:
-        scene = load_scene(folder=Path(tmp) if "xml" in source else None, **source)
-        params = [ParameterPublic(key=p.key, size=p.size, owner=p.owner, owner_type=p.owner_type, value=list(p.value))
-                  for p in differentiable_parameters(scene.params)]
-        sensors = [list(scene.resolution(i)) for i in range(scene.sensor_count)]
-    return SceneParameters(parameters=params, sensors=sensors)
+async def _describe(scene: SceneSpec, runtime: Runtime) -> SceneParameters:
+    try:
+        found = await anyio.to_thread.run_sync(describe_scene, scene, runtime.settings.limits,
+                                               limiter=runtime.blocking)
+    except InvalidJob as exc:
+        raise ProblemError(422, "Invalid scene", str(exc), slug="invalid-scene", errors=[(exc.field, exc.message)]) from None
+    return SceneParameters.model_validate(found)
 
 
-@router.get("/{name}/parameters", response_model=SceneParameters, responses={404: {"model": Problem}},
+@router.get("/{name}/parameters", response_model=SceneParameters, responses={404: {"model": ProblemDetails}},
             summary="Parameters of a built-in scene")
-async def builtin_parameters(name: str):
-    from services.scene.builtin import BUILTIN_SCENES
-
+async def builtin_parameters(name: str, runtime: RuntimeDep):
     if name not in BUILTIN_SCENES:
         raise ProblemError(404, "Not found", f"no built-in scene {name!r}; known: {', '.join(BUILTIN_SCENES)}",
                            slug="unknown-scene")
-    return await asyncio.to_thread(_describe, builtin=name)
+    return await _describe(BuiltinScene(builtin=name), runtime)
 
 
-@router.post("/parameters", response_model=SceneParameters, responses={422: {"model": Problem}},
+@router.post("/parameters", response_model=SceneParameters, responses={422: {"model": ProblemDetails}},
              summary="Parameters of an uploaded scene")
 async def uploaded_parameters(scene: XmlScene, runtime: RuntimeDep):
     """The same sandbox as job submission applies (only the uploaded files can be read)."""
-    from services.scene.sandbox import SandboxError, UploadLimits, check_scene_upload
-
-    limits = runtime.settings.limits
-    try:
-        files = check_scene_upload(scene.xml, scene.files,
-                                   UploadLimits(max_file_bytes=limits.mesh_bytes, max_total_bytes=limits.upload_bytes))
-    except SandboxError as exc:
-        raise ProblemError(422, "Invalid scene", str(exc), slug="invalid-scene", errors=[(exc.field, exc.message)]) from None
-    try:
-        return await asyncio.to_thread(_describe, xml=scene.xml, files=files)
-    except (RuntimeError, ValueError, FileNotFoundError) as exc:
-        raise ProblemError(422, "Invalid scene", f"Mitsuba could not load the scene: {exc}", slug="invalid-scene",
-                           errors=[("scene.xml", str(exc))]) from None
+    return await _describe(scene, runtime)

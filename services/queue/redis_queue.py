@@ -1,32 +1,168 @@
-"""Redis Streams queue: one stream of job ids, one consumer group of workers.
+"""Redis Streams queue: one stream of job ids, one consumer group of workers, and a few keys.
 
-    XADD       ndrf:jobs * job <id>                         enqueue
-    XAUTOCLAIM ndrf:jobs workers <me> <lease ms> 0-0 COUNT 1  take over an entry whose worker
-                                                               stopped renewing (dead or hung)
-    XREADGROUP GROUP workers <me> COUNT 1 BLOCK <ms> STREAMS ndrf:jobs >    a new entry
-    XCLAIM     ndrf:jobs workers <me> 0 <entry> JUSTID      renew: reset the entry's idle time
-    XACK + XDEL                                             done
+    ndrf:jobs                      stream of entries ``job <id>``, consumer group ``workers``
+    ndrf:queued                    hash job -> its one entry id, or ``~<attempt>`` (adopted, see below;
+                                   such a marker holds the job only while that attempt's heartbeat lives)
+    ndrf:alive:<job>:<attempt>     heartbeat of a running attempt (value: consumer; PX = the lease)
+    ndrf:orphans                   hash job -> when the reconciler first missed it (Redis TIME, ms)
 
-The delivery counter Redis keeps per pending entry is the attempt number. Events go to a stream
-per job, ``ndrf:events:<id>``, trimmed to the most recent entries (the store keeps them all).
+    enqueue    Lua: no-op if the job has a marker (or the named attempt is alive); else XADD + marker
+    lease      XAUTOCLAIM entries idle >= lease (their owner stopped renewing), else XREADGROUP
+    renew      Lua: if XPENDING names this consumer as the entry's owner: XCLAIM JUSTID (idle = 0) and
+               refresh the heartbeat; owned by another consumer: lost; not pending at all and the job
+               has no marker (Redis restarted empty): adopt (marker ``~<attempt>`` + heartbeat)
+    ack        Lua: XACK + XDEL + drop the marker only if this consumer still owns the entry (or its
+               adopted marker): a fenced attempt never removes its successor's delivery
+    requeue    Lua: ack as above, then XADD a new entry and point the marker at it, in one step
+
+Idle time and heartbeat are reset in the same script, so "idle for a lease period" (XAUTOCLAIM's
+test) and "heartbeat expired" agree. The delivery counter Redis keeps per pending entry is the
+delivery number. Events go to a stream per job, ``ndrf:events:<id>``, trimmed (the store keeps
+them all); waiting on it uses ``redis.asyncio`` on the event loop (no thread held).
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import time
+import uuid
+from collections.abc import Iterable
 
 import redis
+import redis.asyncio
 
-from services.queue.base import EventBus, JobQueue, Lease
+from services.queue.base import EventBus, JobQueue, Lease, Renewal, StreamSlots
 
 log = logging.getLogger(__name__)
 
 STREAM = "ndrf:jobs"
 GROUP = "workers"
+MARKERS = "ndrf:queued"
+BEAT = "ndrf:alive:{}:{}"
+ORPHANS = "ndrf:orphans"
 EVENTS = "ndrf:events:{}"
+SLOTS = "ndrf:streams:{}"
 EVENTS_MAXLEN = 10000
+
+# The owner of one pending entry: ``p`` is XPENDING's reply ({} when not pending or no group).
+_OWNER = """
+local p = redis.pcall('XPENDING', KEYS[1], ARGV[1], ARGV[3], ARGV[3], 1)
+if type(p) ~= 'table' or p.err or #p == 0 then p = nil end
+"""
+
+# An adopted marker (``~<attempt>``) holds the job only while that attempt's heartbeat lives: the
+# adopting worker may die too, and then nothing else would ever bring the job back.
+_STALE = """
+local function stale(job, m)
+  return string.sub(m, 1, 1) == '~' and redis.call('EXISTS', 'ndrf:alive:' .. job .. ':' .. string.sub(m, 2)) == 0
+end
+"""
+
+_ENQUEUE = _STALE + """
+local held = redis.call('HGET', KEYS[2], ARGV[1])
+if held and not stale(ARGV[1], held) then return false end
+if KEYS[3] ~= '' and redis.call('EXISTS', KEYS[3]) == 1 then return false end
+redis.pcall('XGROUP', 'CREATE', KEYS[1], ARGV[2], '0', 'MKSTREAM')
+local id = redis.call('XADD', KEYS[1], '*', 'job', ARGV[1])
+redis.call('HSET', KEYS[2], ARGV[1], id)
+return id
+"""
+
+# KEYS stream, markers, beat   ARGV group, consumer, entry, lease ms, job, attempt
+_RENEW = _OWNER + """
+if p then
+  if p[1][2] ~= ARGV[2] then return 0 end
+  redis.call('XCLAIM', KEYS[1], ARGV[1], ARGV[2], 0, ARGV[3], 'JUSTID')
+  redis.call('SET', KEYS[3], ARGV[2], 'PX', ARGV[4])
+  return 1
+end
+local m = redis.call('HGET', KEYS[2], ARGV[5])
+if m == '~' .. ARGV[6] then
+  redis.call('SET', KEYS[3], ARGV[2], 'PX', ARGV[4])
+  return 1
+end
+if m then return 0 end
+redis.call('HSET', KEYS[2], ARGV[5], '~' .. ARGV[6])
+redis.call('SET', KEYS[3], ARGV[2], 'PX', ARGV[4])
+return 2
+"""
+
+# KEYS stream, markers, beat   ARGV group, consumer, entry, job, attempt, requeue (1/0)
+_RELEASE = _OWNER + """
+local mine = 0
+local m = redis.call('HGET', KEYS[2], ARGV[4])
+if p then
+  if p[1][2] == ARGV[2] then
+    redis.call('XACK', KEYS[1], ARGV[1], ARGV[3])
+    redis.call('XDEL', KEYS[1], ARGV[3])
+    if m == ARGV[3] then redis.call('HDEL', KEYS[2], ARGV[4]); m = false end
+    mine = 1
+  end
+elseif ARGV[5] ~= '' and m == '~' .. ARGV[5] then
+  redis.call('HDEL', KEYS[2], ARGV[4]); m = false
+  mine = 1
+end
+if KEYS[3] ~= '' then redis.call('DEL', KEYS[3]) end
+if mine == 1 and ARGV[6] == '1' and not m then
+  redis.pcall('XGROUP', 'CREATE', KEYS[1], ARGV[1], '0', 'MKSTREAM')
+  local id = redis.call('XADD', KEYS[1], '*', 'job', ARGV[4])
+  redis.call('HSET', KEYS[2], ARGV[4], id)
+end
+return mine
+"""
+
+# KEYS markers: the jobs held by a live marker
+_HELD = _STALE + """
+local out = {}
+local all = redis.call('HGETALL', KEYS[1])
+for i = 1, #all, 2 do
+  if not stale(all[i], all[i + 1]) then table.insert(out, all[i]) end
+end
+return out
+"""
+
+# KEYS orphans   ARGV grace ms, candidates...
+_ORPHANS = """
+local t = redis.call('TIME')
+local now = tonumber(t[1]) * 1000 + math.floor(tonumber(t[2]) / 1000)
+local keep = {}
+for i = 2, #ARGV do keep[ARGV[i]] = true end
+local known = redis.call('HKEYS', KEYS[1])
+for _, job in ipairs(known) do
+  if not keep[job] then redis.call('HDEL', KEYS[1], job) end
+end
+local due = {}
+for i = 2, #ARGV do
+  local since = redis.call('HGET', KEYS[1], ARGV[i])
+  if not since then
+    redis.call('HSET', KEYS[1], ARGV[i], now)
+  elseif now - tonumber(since) >= tonumber(ARGV[1]) then
+    table.insert(due, ARGV[i])
+  end
+end
+return due
+"""
+
+# KEYS slots of one owner   ARGV cap, ttl ms, slot
+_ACQUIRE = """
+local t = redis.call('TIME')
+local now = tonumber(t[1]) * 1000 + math.floor(tonumber(t[2]) / 1000)
+redis.call('ZREMRANGEBYSCORE', KEYS[1], '-inf', now)
+if redis.call('ZCARD', KEYS[1]) >= tonumber(ARGV[1]) then return 0 end
+redis.call('ZADD', KEYS[1], now + tonumber(ARGV[2]), ARGV[3])
+redis.call('PEXPIRE', KEYS[1], ARGV[2])
+return 1
+"""
+
+_REFRESH = """
+local t = redis.call('TIME')
+local now = tonumber(t[1]) * 1000 + math.floor(tonumber(t[2]) / 1000)
+redis.call('ZADD', KEYS[1], 'XX', now + tonumber(ARGV[1]), ARGV[2])
+redis.call('PEXPIRE', KEYS[1], ARGV[1])
+return 1
+"""
 
 
 def connect(url: str) -> redis.Redis:
@@ -34,10 +170,23 @@ def connect(url: str) -> redis.Redis:
                                 health_check_interval=15)
 
 
+def connect_async(url: str) -> redis.asyncio.Redis:
+    """A client for the event loop. Its socket timeout (redis-py's default is 5 s) must exceed the
+    longest ``XREAD BLOCK``; callers also bound each wait with ``wait_for``."""
+    return redis.asyncio.Redis.from_url(url, decode_responses=True, socket_connect_timeout=5, socket_timeout=60,
+                                        health_check_interval=15)
+
+
 class RedisJobQueue(JobQueue):
     def __init__(self, client: redis.Redis, lease_seconds: float):
         self.redis = client
+        self.lease_seconds = lease_seconds
         self.lease_ms = int(lease_seconds * 1000)
+        self._enqueue = client.register_script(_ENQUEUE)
+        self._renew = client.register_script(_RENEW)
+        self._release = client.register_script(_RELEASE)
+        self._orphans = client.register_script(_ORPHANS)
+        self._held = client.register_script(_HELD)
         self._ensure_group()
 
     def _ensure_group(self) -> None:
@@ -57,8 +206,9 @@ class RedisJobQueue(JobQueue):
             self._ensure_group()
             return fn()
 
-    def enqueue(self, job_id: str) -> None:
-        self._retrying(lambda: self.redis.xadd(STREAM, {"job": job_id}))
+    def enqueue(self, job_id: str, *, unless_alive: str | None = None) -> bool:
+        beat = BEAT.format(job_id, unless_alive) if unless_alive else ""
+        return self._enqueue(keys=[STREAM, MARKERS, beat], args=[job_id, GROUP]) is not None
 
     def _delivery(self, entry_id: str) -> int:
         pending = self.redis.xpending_range(STREAM, GROUP, min=entry_id, max=entry_id, count=1)
@@ -66,35 +216,43 @@ class RedisJobQueue(JobQueue):
 
     def lease(self, consumer: str, block_seconds: float) -> Lease | None:
         def attempt():
-            _, claimed, _ = self.redis.xautoclaim(STREAM, GROUP, consumer, self.lease_ms, "0-0", count=1)
+            _, claimed, *_ = self.redis.xautoclaim(STREAM, GROUP, consumer, self.lease_ms, "0-0", count=1)
             if claimed:
                 entry_id, fields = claimed[0]
-                if fields is None:  # the entry was deleted meanwhile
+                if not fields:  # the entry was deleted meanwhile
                     self.redis.xack(STREAM, GROUP, entry_id)
                     return None
-                log.warning("took over job %s (entry %s) from a worker whose lease expired", fields["job"], entry_id)
-                return Lease(fields["job"], entry_id, self._delivery(entry_id))
+                log.warning("took over job %s (entry %s) from a consumer that stopped renewing", fields["job"],
+                            entry_id)
+                return Lease(fields["job"], entry_id, self._delivery(entry_id), consumer)
             reply = self.redis.xreadgroup(GROUP, consumer, {STREAM: ">"}, count=1,
                                           block=max(1, int(block_seconds * 1000)))
-            if not reply:
+            if not reply or not reply[0][1]:
                 return None
             entry_id, fields = reply[0][1][0]
-            return Lease(fields["job"], entry_id, self._delivery(entry_id))
+            return Lease(fields["job"], entry_id, self._delivery(entry_id), consumer)
 
         return self._retrying(attempt)
 
-    def renew(self, lease: Lease, consumer: str) -> bool:
-        claimed = self._retrying(lambda: self.redis.xclaim(STREAM, GROUP, consumer, 0, [lease.entry_id], justid=True))
-        if not claimed:
-            return False
-        owner = self.redis.xpending_range(STREAM, GROUP, min=lease.entry_id, max=lease.entry_id, count=1)
-        return bool(owner) and owner[0]["consumer"] == consumer
+    def renew(self, lease: Lease, attempt: str) -> Renewal:
+        got = self._renew(keys=[STREAM, MARKERS, BEAT.format(lease.job_id, attempt)],
+                          args=[GROUP, lease.consumer, lease.entry_id, self.lease_ms, lease.job_id, attempt])
+        return {1: Renewal.KEPT, 2: Renewal.ADOPTED}.get(int(got), Renewal.LOST)
 
-    def ack(self, lease: Lease) -> None:
-        pipe = self.redis.pipeline()
-        pipe.xack(STREAM, GROUP, lease.entry_id)
-        pipe.xdel(STREAM, lease.entry_id)
-        pipe.execute()
+    def alive(self, job_id: str, attempt: str) -> bool:
+        return bool(self.redis.exists(BEAT.format(job_id, attempt)))
+
+    def _release_entry(self, lease: Lease, attempt: str | None, requeue: bool) -> bool:
+        beat = BEAT.format(lease.job_id, attempt) if attempt else ""
+        return bool(self._release(keys=[STREAM, MARKERS, beat],
+                                  args=[GROUP, lease.consumer, lease.entry_id, lease.job_id, attempt or "",
+                                        "1" if requeue else "0"]))
+
+    def ack(self, lease: Lease, attempt: str | None = None) -> bool:
+        return self._release_entry(lease, attempt, requeue=False)
+
+    def requeue(self, lease: Lease, attempt: str | None = None) -> bool:
+        return self._release_entry(lease, attempt, requeue=True)
 
     def depth(self) -> dict[str, int]:
         try:
@@ -105,15 +263,24 @@ class RedisJobQueue(JobQueue):
         return {"waiting": int(group.get("lag") or 0), "leased": int(group.get("pending") or 0)}
 
     def queued_ids(self) -> set[str]:
-        try:
-            return {fields["job"] for _, fields in self.redis.xrange(STREAM) if fields}
-        except redis.ResponseError:
+        return set(self._held(keys=[MARKERS]))
+
+    def orphans(self, candidates: Iterable[str], grace_seconds: float) -> set[str]:
+        jobs = sorted(set(candidates))
+        if not jobs:
+            self.redis.delete(ORPHANS)
             return set()
+        return set(self._orphans(keys=[ORPHANS], args=[int(grace_seconds * 1000), *jobs]))
 
 
 class RedisEventBus(EventBus):
-    def __init__(self, client: redis.Redis):
+    """Events on ``ndrf:events:<job>``; threads wait with the blocking client, the event loop with
+    a ``redis.asyncio`` client of its own (made on first use, per loop)."""
+
+    def __init__(self, client: redis.Redis, url: str | None = None):
         self.redis = client
+        self.url = url
+        self._async: tuple[asyncio.AbstractEventLoop, redis.asyncio.Redis] | None = None
 
     def publish(self, job_id: str, event: dict) -> None:
         try:
@@ -135,3 +302,61 @@ class RedisEventBus(EventBus):
             log.warning("event stream of job %s unavailable: %s", job_id, exc)
             time.sleep(min(timeout, 1.0))
             return True
+
+    def async_client(self) -> redis.asyncio.Redis:
+        loop = asyncio.get_running_loop()
+        if self._async is None or self._async[0] is not loop:
+            if self.url is None:
+                raise RuntimeError("RedisEventBus needs the Redis URL to wait on the event loop")
+            self._async = (loop, connect_async(self.url))
+        return self._async[1]
+
+    async def wait_async(self, job_id: str, after_seq: int, timeout: float) -> bool:
+        stream = EVENTS.format(job_id)
+        client = self.async_client()
+        try:
+            last = await asyncio.wait_for(client.xrevrange(stream, count=1), 10)
+            if last and int(last[0][1]["seq"]) > after_seq:
+                return True
+            reply = await asyncio.wait_for(client.xread({stream: last[0][0] if last else "0-0"}, count=1,
+                                                        block=max(1, int(timeout * 1000))), timeout + 10)
+            return bool(reply)
+        except (redis.RedisError, OSError, TimeoutError) as exc:  # Redis away: readers re-read the store
+            log.warning("event stream of job %s unavailable: %s", job_id, exc)
+            await asyncio.sleep(min(timeout, 1.0))
+            return True
+
+    async def aclose(self) -> None:
+        if self._async is not None:
+            await self._async[1].aclose()
+            self._async = None
+
+
+class RedisStreamSlots(StreamSlots):
+    """``ndrf:streams:<owner>``: a sorted set of open streams, scored by when each expires, shared by
+    every API process (a process that dies leaves slots that expire after ``ttl_seconds``)."""
+
+    def __init__(self, bus: RedisEventBus, ttl_seconds: float = 60.0):
+        self.bus, self.ttl_seconds = bus, ttl_seconds
+
+    async def acquire(self, owner: str, cap: int) -> str | None:
+        slot = uuid.uuid4().hex
+        try:
+            got = await self.bus.async_client().eval(_ACQUIRE, 1, SLOTS.format(owner), cap,
+                                                     int(self.ttl_seconds * 1000), slot)
+        except redis.RedisError as exc:  # Redis away: streams still work (the store feeds them), uncapped
+            log.warning("stream slots unavailable, not capping: %s", exc)
+            return slot
+        return slot if int(got) else None
+
+    async def refresh(self, owner: str, slot: str) -> None:
+        try:
+            await self.bus.async_client().eval(_REFRESH, 1, SLOTS.format(owner), int(self.ttl_seconds * 1000), slot)
+        except redis.RedisError as exc:
+            log.warning("stream slot refresh failed: %s", exc)
+
+    async def release(self, owner: str, slot: str) -> None:
+        try:
+            await self.bus.async_client().zrem(SLOTS.format(owner), slot)
+        except redis.RedisError as exc:  # it expires by itself
+            log.warning("stream slot release failed: %s", exc)

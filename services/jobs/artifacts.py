@@ -1,0 +1,156 @@
+"""The host side of a run's reports: :class:`JobWriter` writes what the loop reports into the
+job's files in the artifact store (layout: :mod:`services.store.job`).
+
+Every write of an attempt goes through :meth:`JobWriter._put`, which checks the fence (the job
+record still names this attempt) and the job's disk budget first; the record itself only changes
+through :class:`services.jobs.state.JobStates`. The same writer serves the worker's parent process
+(reports arrive from the sandboxed child) and ``ndrf run`` (reports come from the loop in-process).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+import numpy as np
+
+from schemas.records import IterationRecord, JobStatus
+from services.jobs.state import Fenced, JobStates
+from services.store.images import gradient_png, npy_bytes, srgb_png
+from services.store.job import JobFiles
+
+log = logging.getLogger(__name__)
+
+
+class BudgetExceeded(Exception):
+    """The job wrote more than its disk budget (``NDRF_MAX_JOB_BYTES``)."""
+
+
+class JobWriter:
+    """Writes one attempt's reports (a :class:`~services.solver.optimize.report.RunReporter`).
+
+    ``attempt``      the attempt id the record must name (None: no fence, as for ``ndrf run``)
+    ``byte_budget``  most bytes this job's files may take (None: no budget)
+    ``stop``         what :meth:`should_stop` answers (the host's cancel / shutdown check)
+    """
+
+    def __init__(self, states: JobStates, job_id: str, *, attempt: str | None = None, byte_budget: int | None = None,
+                 stop: Callable[[], str | None] = lambda: None):
+        self.states, self.job_id, self.attempt = states, job_id, attempt
+        self.files: JobFiles = states.files(job_id)
+        self.byte_budget = byte_budget
+        self.written = self._existing_bytes() if byte_budget is not None else 0
+        self.stop = stop
+        self.labels: list[str] = []
+
+    # ------------------------------------------------------------------ fence
+
+    def guard(self) -> None:
+        """Raise :class:`Fenced` unless the record still names this attempt."""
+        if self.attempt is not None:
+            owner = self.states.get(self.job_id).attempt
+            if owner != self.attempt:
+                raise Fenced(self.job_id, self.attempt, owner)
+
+    def _put(self, key: str, data: bytes) -> None:
+        if self.byte_budget is not None and self.written + len(data) > self.byte_budget:
+            raise BudgetExceeded(f"the job's files would exceed its disk budget of {self.byte_budget >> 20} MiB "
+                                 f"(NDRF_MAX_JOB_BYTES); write images less often (images_every)")
+        self.files.store.put(key, data)
+        self.written += len(data)
+
+    def _existing_bytes(self) -> int:
+        return self.files.store.prefix_bytes(self.files.prefix)
+
+    def event(self, kind: str, **payload) -> dict:
+        return self.states.event(self.job_id, {"type": kind, "attempt": self.attempt, **payload})
+
+    # --------------------------------------------------------------- reports
+
+    def plan(self, plan: dict) -> None:
+        self.guard()
+        self.labels = list(plan.get("scalars") or [])
+        self._put(self.files.key(JobFiles.PLAN), _json(plan))
+        self.event("plan", plan=plan)
+
+    def targets(self, images: dict[int, np.ndarray]) -> None:
+        self.guard()
+        for sensor, image in sorted(images.items()):
+            if not self.files.store.exists(self.files.target_key(sensor, "npy")):  # deterministic: written once
+                self._put(self.files.target_key(sensor, "npy"), npy_bytes(np.asarray(image, np.float32)))
+                self._put(self.files.target_key(sensor, "png"), srgb_png(image))
+
+    def progress(self, kind: str, payload: dict) -> None:
+        self.guard()
+        self.event(kind, **payload)
+
+    def iteration(self, record: IterationRecord, renders: dict[int, np.ndarray] | None,
+                  gradients: dict[int, np.ndarray] | None) -> None:
+        self.guard()
+        k = record.iteration
+        for sensor, image in sorted((renders or {}).items()):
+            self._put(self.files.iteration_key(k, "render.png" if sensor == 0 else f"render-{sensor}.png"),
+                      srgb_png(image))
+        for sensor, images in sorted((gradients or {}).items()):
+            scales = self._gradient_images(k, sensor, images)
+            if record.preview_scales is None:  # the first sensor's, as the previews the dashboard shows
+                record = record.model_copy(update={"preview_scales": scales})
+        self._put(self.files.iteration_key(k), _json(record.model_dump(mode="json")))
+        self.states.transition(self.job_id, fence=self.attempt, iteration=k)
+        self.event("iteration", **record.model_dump(mode="json"))
+
+    def _gradient_images(self, k: int, sensor: int, images: np.ndarray) -> list[float]:
+        """``gradients.npy`` and one PNG preview per scalar; returns the preview scales."""
+        folder = "" if sensor == 0 else f"sensor-{sensor}/"
+        self._put(self.files.iteration_key(k, f"{folder}gradients.npy"), npy_bytes(images.astype(np.float32)))
+        scales = []
+        for i in range(images.shape[0]):
+            png, scale = gradient_png(images[i])
+            self._put(self.files.iteration_key(k, f"{folder}gradient-{i}.png"), png)
+            scales.append(scale)
+        return scales
+
+    def checkpoint(self, state: bytes, next_iteration: int) -> None:
+        self.guard()
+        self._put(self.files.key(JobFiles.CHECKPOINT), state)
+        self._put(self.files.key(JobFiles.CHECKPOINT_INFO), _json({"next_iteration": next_iteration}))
+        self.event("checkpoint", iteration=next_iteration)
+
+    def should_stop(self):  # -> StopReason | None, as RunReporter declares
+        return self.stop()
+
+    # ----------------------------------------------------------------- the end
+
+    def summary(self, outcome) -> dict:
+        """``summary.json`` of a finished run (from a :class:`RunOutcome` or its dict)."""
+        data = outcome if isinstance(outcome, dict) else vars(outcome)
+        plan = self.files.read(JobFiles.PLAN, {}) or {}
+        summary = {"status": data["status"], "method": plan.get("method"), "iterations": data["iterations"],
+                   "seconds": data["seconds"], "scalars": plan.get("scalars"), "init": plan.get("init"),
+                   "final": data.get("parameters"), "target": plan.get("target_values"),
+                   "error": data.get("error"), "field": data.get("field")}
+        if summary["final"] is not None and summary["target"] is not None:
+            summary["max_abs_error"] = float(np.max(np.abs(np.asarray(summary["final"]) - np.asarray(summary["target"]))))
+        self.guard()
+        self._put(self.files.key(JobFiles.SUMMARY), _json(summary))
+        return summary
+
+    def finish(self, outcome) -> JobStatus:
+        """Record how the attempt ended: ``interrupted`` hands the job back (queued); anything
+        else finishes it. Returns the new status."""
+        data = outcome if isinstance(outcome, dict) else vars(outcome)
+        if data["status"] == "interrupted":
+            self.states.transition(self.job_id, JobStatus.QUEUED, fence=self.attempt, expect={JobStatus.RUNNING},
+                                   note="interrupted: the worker stopped; resumes from its checkpoint")
+            return JobStatus.QUEUED
+        self.summary(data)
+        status = JobStatus(data["status"])
+        self.states.transition(self.job_id, status, fence=self.attempt, expect={JobStatus.RUNNING},
+                               error=data.get("error"), field=data.get("field"))
+        return status
+
+
+def _json(value) -> bytes:
+    from services.store.files import dumps
+
+    return (dumps(value) + "\n").encode()

@@ -1,0 +1,160 @@
+"""The sandboxed child process (``python -m services.jobs.child MODE LIMITS``), started by
+:mod:`services.jobs.isolation`. It reads one start frame on stdin and answers in frames on stdout
+(:mod:`services.jobs.frames`); it writes nothing anywhere else.
+
+``check``     load the job's scene and check everything but rendering (the API's preflight):
+              answers ``checked`` {report} or ``invalid`` {field, message}
+``describe``  load a scene and list its optimizable parameters and films: ``described`` {scene}
+``run``       run the job (:class:`services.solver.optimize.loop.InverseRenderingRun`), forwarding
+           every report as a frame (``plan``, ``targets``, ``progress``, ``iteration``,
+           ``checkpoint``) and ending with ``outcome``. SIGUSR1 asks it to cancel, SIGTERM to stop
+           and checkpoint (the job goes back to the queue).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+from services.jobs.frames import array_bytes, read_frame, write_frame
+from services.jobs.isolation import apply_limits
+
+log = logging.getLogger("services.jobs.child")
+
+
+class PipeReporter:
+    """A :class:`~services.solver.optimize.report.RunReporter` that forwards to the parent."""
+
+    def __init__(self, stream):
+        self.stream = stream
+
+    def plan(self, plan):
+        write_frame(self.stream, "plan", {"plan": plan})
+
+    def targets(self, images):
+        write_frame(self.stream, "targets", {}, {str(s): array_bytes(a) for s, a in images.items()})
+
+    def progress(self, kind, payload):
+        write_frame(self.stream, "progress", {"kind": kind, "payload": payload})
+
+    def iteration(self, record, renders, gradients):
+        blobs = {f"render-{s}": array_bytes(a) for s, a in (renders or {}).items()}
+        blobs |= {f"gradients-{s}": array_bytes(a) for s, a in (gradients or {}).items()}
+        write_frame(self.stream, "iteration", {"record": record.model_dump(mode="json")}, blobs)
+
+    def checkpoint(self, state, next_iteration):
+        write_frame(self.stream, "checkpoint", {"next_iteration": next_iteration}, {"state": state})
+
+    def should_stop(self):
+        return STOP[0] if STOP else None
+
+
+def _mitsuba_log_to_stderr() -> None:
+    """Forward Mitsuba's warnings and the names of the files it loads to stderr, where the parent
+    finds the file a crash happened in."""
+    from services.solver.backend import use_mitsuba
+
+    mi = use_mitsuba()
+
+    class Appender(mi.Appender):  # type: ignore[name-defined]
+        def append(self, level, text):
+            if level >= mi.LogLevel.Warn or "Loading" in text:
+                sys.stderr.write(text + "\n")
+                sys.stderr.flush()
+
+        def log_progress(self, *args):
+            pass
+
+    logger = mi.logger()
+    logger.clear_appenders()
+    logger.add_appender(Appender())
+    logger.set_log_level(mi.LogLevel.Debug)
+
+
+def check(start: dict, out) -> None:
+    from schemas.errors import InvalidJob
+    from schemas.job import JobSpec
+    from services.solver.optimize.setup import check as check_job
+
+    spec = JobSpec.model_validate(start["spec"])
+    scene_file = Path(start["scene_file"]) if start.get("scene_file") else None
+    try:
+        checked = check_job(spec, scene_file, max_scalars=start.get("max_scalars"))
+    except InvalidJob as exc:
+        write_frame(out, "invalid", {"field": exc.field, "message": exc.message})
+        return
+    write_frame(out, "checked", {"report": checked.report()})
+
+
+def describe(start: dict, out) -> None:
+    from schemas.errors import InvalidJob
+    from services.solver.scene.load import load_scene
+    from services.solver.scene.params import differentiable_parameters
+
+    try:
+        if start.get("scene_file"):
+            scene = load_scene(xml_path=Path(start["scene_file"]))
+        else:
+            scene = load_scene(builtin=start["scene"]["builtin"])
+    except KeyError as exc:
+        write_frame(out, "invalid", {"field": "scene.builtin", "message": str(exc.args[0])})
+        return
+    except (RuntimeError, OSError, ValueError, InvalidJob) as exc:
+        write_frame(out, "invalid", {"field": "scene.xml", "message": f"Mitsuba could not load the scene: {exc}"})
+        return
+    parameters = [{"key": p.key, "size": p.size, "owner": p.owner, "owner_type": p.owner_type, "value": list(p.value)}
+                  for p in differentiable_parameters(scene.params)]
+    sensors = [list(scene.resolution(i)) for i in range(scene.sensor_count)]
+    write_frame(out, "described", {"scene": {"parameters": parameters, "sensors": sensors}})
+
+
+def run(start: dict, out) -> None:
+    from schemas.job import JobSpec
+    from services.solver.backend import use_torch
+    from services.solver.optimize.loop import InverseRenderingRun
+
+    use_torch()
+    spec = JobSpec.model_validate(start["spec"])
+    reporter = PipeReporter(out)
+    resume = Path(start["resume_file"]).read_bytes() if start.get("resume_file") else None
+    scene_file = Path(start["scene_file"]) if start.get("scene_file") else None
+    outcome = InverseRenderingRun(spec, reporter, scene_file=scene_file, resume=resume).execute()
+    write_frame(out, "outcome", asdict(outcome))
+
+
+#: The stop the parent asked for (set by the signal handlers, installed first thing in main:
+#: before that, SIGUSR1 would kill the child).
+STOP: list[str] = []
+
+
+def _ask(reason: str):
+    def handler(*_):
+        if not STOP:
+            STOP.append(reason)
+    return handler
+
+
+def main(argv: list[str]) -> int:
+    signal.signal(signal.SIGUSR1, _ask("canceled"))
+    signal.signal(signal.SIGTERM, _ask("interrupted"))
+    mode, limits = argv[0], json.loads(argv[1])
+    apply_limits(limits)
+    logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
+    out = sys.stdout.buffer
+    sys.stdout = sys.stderr  # nothing but frames on the frame stream
+    write_frame(out, "ready")  # the handlers are in place: the parent may signal from now on
+    frame = read_frame(sys.stdin.buffer)
+    if frame is None or frame[0] != "start":
+        log.error("no start frame")
+        return 2
+    _mitsuba_log_to_stderr()
+    {"check": check, "describe": describe, "run": run}[mode](frame[1], out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

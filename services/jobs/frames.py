@@ -1,0 +1,85 @@
+"""The wire format between a sandboxed child process and its parent: length-prefixed frames.
+
+    frame  = u64 big-endian header length | header (UTF-8 JSON) | blob_1 | ... | blob_n
+    header = {"kind": str, "meta": {...}, "blobs": [[name, length], ...]}
+
+Arrays travel as ``.npy`` bytes read back with ``allow_pickle=False``, checkpoints as opaque
+bytes: nothing the parent reads from a child can run code in the parent, even if a hostile scene
+took the child over. The parent bounds every length it reads.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import struct
+from typing import BinaryIO
+
+import numpy as np
+
+MAX_HEADER_BYTES = 16 << 20
+MAX_BLOB_BYTES = 4 << 30
+
+
+class FrameError(ValueError):
+    """A malformed frame (a crashed or hostile child)."""
+
+
+def write_frame(stream: BinaryIO, kind: str, meta: dict | None = None, blobs: dict[str, bytes] | None = None) -> None:
+    blobs = blobs or {}
+    header = json.dumps({"kind": kind, "meta": meta or {}, "blobs": [[k, len(v)] for k, v in blobs.items()]},
+                        allow_nan=False).encode()
+    stream.write(struct.pack(">Q", len(header)) + header)
+    for data in blobs.values():
+        stream.write(data)
+    stream.flush()
+
+
+def read_frame(stream: BinaryIO) -> tuple[str, dict, dict[str, bytes]] | None:
+    """The next frame, or None at a clean end of stream."""
+    first = stream.read(1)
+    if not first:
+        return None  # a clean end of stream, between frames
+    head = first + _read_exactly(stream, 7)
+    (length,) = struct.unpack(">Q", head)
+    if length > MAX_HEADER_BYTES:
+        raise FrameError(f"frame header of {length} bytes exceeds {MAX_HEADER_BYTES}")
+    try:
+        header = json.loads(_read_exactly(stream, length))
+        kind, meta, table = str(header["kind"]), dict(header["meta"]), list(header["blobs"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise FrameError(f"malformed frame header: {exc}") from None
+    blobs = {}
+    for name, size in table:
+        if not isinstance(size, int) or not 0 <= size <= MAX_BLOB_BYTES:
+            raise FrameError(f"blob {name!r} of {size} bytes is out of range")
+        blobs[str(name)] = _read_exactly(stream, size)
+    return kind, meta, blobs
+
+
+def _read_exactly(stream: BinaryIO, n: int) -> bytes:
+    chunks, left = [], n
+    while left:
+        chunk = stream.read(left)
+        if not chunk:
+            raise FrameError(f"stream ended {left} bytes before the end of a frame")
+        chunks.append(chunk)
+        left -= len(chunk)
+    return b"".join(chunks)
+
+
+def array_bytes(array: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, np.ascontiguousarray(array), allow_pickle=False)
+    return buffer.getvalue()
+
+
+def array_from(data: bytes, *, dtype=np.float32, ndim: int | None = None) -> np.ndarray:
+    """Read an array sent by a child: numeric dtypes only, no pickles."""
+    try:
+        array = np.load(io.BytesIO(data), allow_pickle=False)
+    except ValueError as exc:
+        raise FrameError(f"not an array: {exc}") from None
+    if array.dtype.kind not in "fiu" or (ndim is not None and array.ndim != ndim):
+        raise FrameError(f"unexpected array {array.dtype} with shape {array.shape}")
+    return array.astype(dtype, copy=False)

@@ -1,0 +1,189 @@
+"""Throw-away child processes for everything that parses untrusted scenes with native code.
+
+Mitsuba's loaders are C++; a hostile mesh or document can crash them (or worse). So an uploaded
+scene is only ever loaded in a child process started here (``python -m services.jobs.child``):
+
+* resource limits set before it reads anything untrusted: address space, CPU seconds, open files,
+  file size, no core dumps; a wall-clock deadline enforced by the parent;
+* an environment with nothing secret in it: no API keys, no Redis URL, no cloud credentials
+  (the child talks to its parent only, over its stdin/stdout pipes);
+* its own process group, and ``PR_SET_PDEATHSIG``: it dies with the parent, and the parent kills
+  it with everything it started;
+* its stderr is kept (the tail names the file Mitsuba was loading when it crashed).
+
+A child that dies by a signal, runs out of memory or time is described by :func:`describe_exit`
+("the loader crashed (SIGSEGV) reading m.ply"), never a dead API or worker.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import json
+import logging
+import os
+import re
+import resource
+import signal
+import subprocess
+import sys
+import threading
+from collections import deque
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import BinaryIO
+
+log = logging.getLogger(__name__)
+
+ROOT = Path(__file__).resolve().parents[2]
+
+#: Variables a child may inherit (nothing secret: no keys, no URLs, no credentials).
+_KEEP = ("PATH", "LANG", "LC_ALL", "HOME", "TMPDIR", "DRJIT_LIBLLVM_PATH", "NDRF_TORCH_THREADS", "PYTHONHASHSEED",
+         "DRJIT_CACHE_DIR")
+_LOADING = re.compile(r'Loading (?:mesh|XML file|texture|bitmap|spectrum)?\s*(?:from )?"([^"]+)"', re.IGNORECASE)
+
+
+@dataclass(frozen=True)
+class ChildLimits:
+    """Resource limits of one child (``NDRF_CHILD_*`` / ``NDRF_MAX_JOB_SECONDS`` settings)."""
+
+    memory_bytes: int = 8 << 30
+    cpu_seconds: int | None = None
+    wall_seconds: float | None = None
+    open_files: int = 512
+    file_bytes: int = 2 << 30
+
+
+def _environment() -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k in _KEEP}
+    env["PYTHONPATH"] = str(ROOT)  # the child imports this checkout's code, whatever the cwd
+    env.setdefault("PYTHONHASHSEED", "0")
+    return env
+
+
+def apply_limits(limits: dict) -> None:
+    """Called first thing in the child (before it imports Mitsuba or reads anything untrusted):
+    die with the parent, then the resource limits. Done in the child rather than in a
+    ``preexec_fn``, which is unsafe in a multi-threaded parent such as the API."""
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+    if os.getppid() == 1:  # the parent died before PDEATHSIG was set
+        os._exit(1)
+    resource.setrlimit(resource.RLIMIT_AS, (limits["memory_bytes"], limits["memory_bytes"]))
+    resource.setrlimit(resource.RLIMIT_NOFILE, (limits["open_files"], limits["open_files"]))
+    resource.setrlimit(resource.RLIMIT_FSIZE, (limits["file_bytes"], limits["file_bytes"]))
+    resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
+    if limits.get("cpu_seconds") is not None:
+        resource.setrlimit(resource.RLIMIT_CPU, (limits["cpu_seconds"], limits["cpu_seconds"] + 5))
+
+
+class Child:
+    """A running child: its pipes, the tail of its stderr, and how it ended."""
+
+    stdin: BinaryIO
+    stdout: BinaryIO
+
+    def __init__(self, mode: str, limits: ChildLimits, cwd: Path, label: str):
+        self.limits, self.label = limits, label
+        self.proc: subprocess.Popen[bytes] = subprocess.Popen(
+            [sys.executable, "-m", "services.jobs.child", mode, json.dumps(asdict(limits))], cwd=cwd,
+            env=_environment(), stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            start_new_session=True, close_fds=True)
+        self.stdin, self.stdout = self.proc.stdin, self.proc.stdout  # type: ignore[assignment]
+        self.stderr_tail: deque[str] = deque(maxlen=200)
+        self.last_file: str | None = None
+        self._drain = threading.Thread(target=self._read_stderr, name=f"stderr-{label}", daemon=True)
+        self._drain.start()
+
+    def _read_stderr(self) -> None:
+        assert self.proc.stderr is not None
+        for raw in self.proc.stderr:
+            line = raw.decode("utf-8", "replace").rstrip()
+            self.stderr_tail.append(line)
+            match = _LOADING.search(line)
+            if match:
+                self.last_file = match.group(1)
+            log.debug("[%s] %s", self.label, line)
+
+    def kill(self) -> None:
+        """Kill the child's whole process group (it may have started threads or processes)."""
+        if self.proc.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.proc.pid, signal.SIGKILL)
+        self.proc.wait()
+
+    def signal(self, sig: int) -> None:
+        if self.proc.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                self.proc.send_signal(sig)
+
+    def wait(self, timeout: float | None = None) -> int:
+        code = self.proc.wait(timeout)
+        self._drain.join(timeout=5)
+        return code
+
+    def describe_exit(self, what: str = "the loader", timed_out: bool = False) -> str:
+        """Why the child ended without answering, for a user."""
+        code = self.proc.returncode
+        reading = f" reading {Path(self.last_file).name}" if self.last_file else ""
+        if timed_out:
+            return f"{what} took longer than {self.limits.wall_seconds:g} s{reading} and was stopped"
+        if code is not None and code < 0:
+            sig = signal.Signals(-code)
+            if sig == signal.SIGXCPU:
+                return f"{what} used more than {self.limits.cpu_seconds} CPU seconds{reading} and was stopped"
+            return f"{what} crashed ({sig.name}){reading}"
+        memory = any("MemoryError" in line or "bad_alloc" in line or "Cannot allocate memory" in line
+                     for line in self.stderr_tail)
+        if memory:
+            return f"{what} ran out of memory (limit {self.limits.memory_bytes >> 20} MiB){reading}"
+        last = next((line for line in reversed(self.stderr_tail) if line.strip()), "")
+        return f"{what} exited with status {code}{reading}" + (f": {last[-300:]}" if last else "")
+
+
+def exchange(mode: str, start: dict, limits: ChildLimits, cwd: Path, what: str) -> tuple[str, dict]:
+    """Start a child, send it ``start``, and wait (at most ``limits.wall_seconds``) for its one
+    answer frame: ``(kind, meta)``. A child that dies or times out raises :class:`ChildFailed`
+    with a description for the user."""
+    from services.jobs.frames import FrameError, read_frame, write_frame
+
+    child = Child(mode, limits, cwd, label=f"{mode}-{os.getpid()}")
+    answer: list = []
+
+    def read() -> None:
+        try:
+            frame = read_frame(child.stdout)
+            while frame is not None and frame[0] == "ready":
+                frame = read_frame(child.stdout)
+            answer.append(frame)
+        except (FrameError, OSError) as exc:
+            answer.append(exc)
+
+    reader = threading.Thread(target=read, name=f"{mode}-answer", daemon=True)
+    try:
+        try:
+            write_frame(child.stdin, "start", start)
+            child.stdin.close()
+        except BrokenPipeError:
+            pass  # it died at once: described below
+        reader.start()
+        reader.join(limits.wall_seconds)
+        timed_out = reader.is_alive()
+        if timed_out:
+            child.kill()
+            reader.join(5)
+            raise ChildFailed(child.describe_exit(what, timed_out=True))
+        child.wait(timeout=limits.wall_seconds)
+        frame = answer[0] if answer else None
+        if not isinstance(frame, tuple):
+            raise ChildFailed(child.describe_exit(what))
+        return frame[0], frame[1]
+    finally:
+        child.kill()
+
+
+class ChildFailed(RuntimeError):
+    """A sandboxed child ended without an answer (crash, signal, out of memory or time)."""

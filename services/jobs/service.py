@@ -1,0 +1,232 @@
+"""The job service: submit, list, inspect, cancel and delete jobs, over the store and the queue.
+
+The store is the source of truth; the queue only says which job a worker should pick up next.
+The API, the workers and the CLI all go through this facade; a job's record changes only through
+:class:`services.jobs.state.JobStates`. No Mitsuba and no torch here: the API starts without them.
+
+Jobs belong to the key that created them (``owner``, a hash of the key): a caller sees only its
+own jobs unless it is an admin; an id of someone else's job is :class:`UnknownJob` (a 404, which
+does not tell that the id exists).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import re
+import secrets
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
+
+from schemas.job import JobSpec
+from schemas.records import ACTIVE, FINISHED, JobRecord, JobStatus
+from services.jobs.state import Conflict, JobStates, UnknownJob, now_iso
+from services.queue.base import EventBus, JobQueue
+from services.store.base import ArtifactStore
+from services.store.job import JobFiles
+
+log = logging.getLogger(__name__)
+
+JOB_ID = re.compile(r"^[0-9a-f]{20}$")
+ANONYMOUS = "anonymous"
+#: A claim whose job never appeared (its writer died between the two steps) is stale after this.
+CLAIM_STALE_SECONDS = 30.0
+
+
+def new_job_id() -> str:
+    """20 hex characters: milliseconds since the epoch (12) then randomness (8): sorts by time."""
+    return f"{int(time.time() * 1000):012x}{secrets.token_hex(4)}"
+
+
+def scene_label(spec: JobSpec) -> str:
+    return getattr(spec.scene, "builtin", None) or ("xml" if hasattr(spec.scene, "xml") else "path")
+
+
+@dataclass(frozen=True)
+class Caller:
+    """Who is asking: the owner id of their key, and whether the key is an admin's."""
+
+    owner: str = ANONYMOUS
+    admin: bool = False
+
+    def may_see(self, record: JobRecord) -> bool:
+        return self.admin or record.owner == self.owner
+
+
+SYSTEM = Caller(ANONYMOUS, admin=True)  # workers, reconcilers, the CLI
+
+
+class TooManyJobs(Exception):
+    """The caller has too many active jobs (a 429)."""
+
+
+class JobService:
+    def __init__(self, store: ArtifactStore, queue: JobQueue, events: EventBus | None = None):
+        self.store = store
+        self.queue = queue
+        self.events = events
+        self.states = JobStates(store, events)
+
+    # ------------------------------------------------------------------ reads
+
+    def record(self, job_id: str, caller: Caller = SYSTEM) -> JobRecord:
+        if not JOB_ID.match(job_id or ""):
+            raise UnknownJob(job_id)
+        record = self.states.get(job_id)
+        if not caller.may_see(record):
+            raise UnknownJob(job_id)
+        return record
+
+    def files(self, job_id: str, caller: Caller = SYSTEM) -> JobFiles:
+        """The job's files, once the caller may see the job (:class:`UnknownJob` otherwise)."""
+        self.record(job_id, caller)
+        return self.states.files(job_id)
+
+    def ids(self) -> list[str]:
+        """All job ids, newest first."""
+        return sorted((key[:-1] for key in self.store.keys("", delimiter=True)
+                       if key.endswith("/") and JOB_ID.match(key[:-1])), reverse=True)
+
+    def records(self, caller: Caller = SYSTEM, status: JobStatus | None = None,
+                before: str | None = None) -> Iterator[JobRecord]:
+        """Records the caller may see, newest first (ids below ``before`` only)."""
+        for job_id in self.ids():
+            if before is not None and job_id >= before:
+                continue
+            try:
+                record = self.states.get(job_id)
+            except (UnknownJob, ValueError):
+                continue  # being created, or being deleted
+            if caller.may_see(record) and (status is None or record.status == status):
+                yield record
+
+    # ----------------------------------------------------------------- submit
+
+    def _claim_key(self, caller: Caller, key: str) -> str:
+        return f".idempotency/{caller.owner}/{hashlib.sha256(key.encode()).hexdigest()}"
+
+    def find_idempotent(self, caller: Caller, key: str) -> JobRecord | None:
+        """The job a caller's ``Idempotency-Key`` created, if any (keys are scoped per caller)."""
+        got = self.store.get(self._claim_key(caller, key))
+        if got is None:
+            return None
+        try:
+            return self.record(got.decode().strip(), caller)
+        except UnknownJob:
+            return None
+
+    def submit(self, spec: JobSpec, caller: Caller = SYSTEM, idempotency_key: str | None = None,
+               max_active: int | None = None, **extra) -> tuple[JobRecord, bool]:
+        """Create and enqueue a job; returns ``(record, created)``. With an ``idempotency_key`` the
+        caller used before, returns that job instead (``created`` False). ``extra`` are further
+        record fields (an experiment's id and varied values)."""
+        job_id = new_job_id()
+        if idempotency_key:
+            existing = self._claim(caller, idempotency_key, job_id)
+            if existing is not None:
+                return existing, False
+        if max_active is not None:
+            active = sum(1 for r in self.records(caller) if r.owner == caller.owner and r.status in ACTIVE)
+            if active >= max_active:
+                raise TooManyJobs(f"{active} jobs of this key are queued or running (limit {max_active}, "
+                                  f"NDRF_MAX_ACTIVE_JOBS_PER_KEY)")
+        files = self.states.files(job_id)
+        files.write(JobFiles.SPEC, spec.model_dump(mode="json"))
+        now = now_iso()
+        record = JobRecord(id=job_id, name=spec.name, owner=caller.owner, status=JobStatus.QUEUED,
+                           method=spec.method.value, scene=scene_label(spec), created=now, updated=now,
+                           iterations=spec.iterations, idempotency_key=idempotency_key,
+                           fingerprint=spec.fingerprint(), **extra)
+        self.states.create(record)
+        self.queue.enqueue(job_id)
+        log.info("job %s queued (%s on %s)", job_id, spec.method.value, record.scene)
+        return record, True
+
+    def _claim(self, caller: Caller, key: str, job_id: str) -> JobRecord | None:
+        """Claim an idempotency key for ``job_id`` in one atomic create (content included);
+        returns the job an earlier claim names, if any. A claim whose job never appeared (its
+        writer died) is taken over once stale."""
+        claim = self._claim_key(caller, key)
+        if self.store.put_if(claim, job_id.encode(), None) is not None:
+            return None
+        got = self.store.get_versioned(claim)
+        if got is None:
+            return self._claim(caller, key, job_id)
+        earlier = got[0].decode().strip()
+        try:
+            return self.record(earlier, caller)
+        except UnknownJob:
+            created = int(earlier[:12], 16) / 1000 if JOB_ID.match(earlier) else 0.0
+            if time.time() - created < CLAIM_STALE_SECONDS:
+                raise Conflict("a request with this Idempotency-Key is still being processed") from None
+            if self.store.put_if(claim, job_id.encode(), got[1]) is None:
+                raise Conflict("a request with this Idempotency-Key is being processed") from None
+            return None
+
+    # ----------------------------------------------------------------- cancel
+
+    def cancel(self, job_id: str, caller: Caller = SYSTEM) -> JobRecord:
+        """Ask a job to stop. A queued job is canceled at once; a running one stops at its next
+        training step and keeps its artifacts. A finished job is a :class:`Conflict`."""
+        record = self.record(job_id, caller)
+        if record.status in FINISHED:
+            raise Conflict(f"job {job_id} is already {record.status.value}", record)
+        try:
+            return self.states.transition(job_id, JobStatus.CANCELED, expect={JobStatus.QUEUED},
+                                          cancel_requested=True)
+        except Conflict:  # running (or it just started): its runner stops it
+            return self.states.transition(job_id, expect={JobStatus.RUNNING}, cancel_requested=True)
+
+    def cancel_requested(self, job_id: str) -> bool:
+        return self.states.get(job_id).cancel_requested
+
+    # ----------------------------------------------------------------- delete
+
+    def delete(self, job_id: str, caller: Caller = SYSTEM) -> None:
+        """Delete a finished job and all its files (an active job must be canceled first)."""
+        record = self.record(job_id, caller)
+        if record.status not in FINISHED:
+            raise Conflict(f"job {job_id} is {record.status.value}: cancel it first", record)
+        self.store.delete_prefix(f"{job_id}/")
+        log.info("deleted job %s", job_id)
+
+    def sweep(self, retention_days: float) -> list[str]:
+        """Delete finished jobs last changed more than ``retention_days`` ago."""
+        cutoff = (datetime.now(UTC) - timedelta(days=retention_days)).isoformat(timespec="milliseconds")
+        gone = [r.id for r in self.records() if r.status in FINISHED and r.updated < cutoff]
+        for job_id in gone:
+            self.store.delete_prefix(f"{job_id}/")
+        if gone:
+            log.info("retention: deleted %d finished job(s) older than %g days", len(gone), retention_days)
+        return gone
+
+    # -------------------------------------------------------------- reconcile
+
+    def reconcile(self, grace_seconds: float) -> list[str]:
+        """Re-enqueue the unfinished jobs the queue lost (Redis restarted without persistence).
+
+        A job is a candidate when the queue holds no marker of it and, if it is running, the
+        attempt its record names has no live heartbeat. It is re-enqueued only once it has been a
+        candidate for ``grace_seconds`` (across reconciler passes, whichever process runs them): a
+        live attempt re-registers itself at its next lease renewal after Redis comes back, and a
+        job being submitted is in the store a moment before it is in the queue. The enqueue itself
+        is a no-op if the job got a marker or its attempt a heartbeat meanwhile."""
+        held = self.queue.queued_ids()
+        candidates: dict[str, JobRecord] = {}
+        for record in self.records():
+            if record.status not in ACTIVE or record.id in held:
+                continue
+            if record.status is JobStatus.RUNNING and record.attempt and self.queue.alive(record.id, record.attempt):
+                continue
+            candidates[record.id] = record
+        added = []
+        for job_id in sorted(self.queue.orphans(candidates, grace_seconds)):
+            record = candidates[job_id]
+            attempt = record.attempt if record.status is JobStatus.RUNNING else None
+            if self.queue.enqueue(job_id, unless_alive=attempt):
+                added.append(job_id)
+                log.warning("reconciler: re-enqueued unfinished job %s (%s, attempt %s)", job_id,
+                            record.status.value, record.attempt)
+        return added

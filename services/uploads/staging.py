@@ -1,0 +1,48 @@
+"""Staging of an uploaded scene: check it (:mod:`services.uploads.sandbox`), then write the XML
+and its files into an emptied folder, where a sandboxed child loads it.
+
+The folder is emptied first so that nothing left there can shadow an upload, and created even
+when the scene has no files (a self-contained XML is the simplest upload there is).
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from schemas.job import BuiltinScene, PathScene, SceneSpec, XmlScene
+from services.uploads.sandbox import MAIN_XML_NAME, UploadLimits, check_scene_upload
+
+
+def write_scene_files(folder: Path, xml: str, files: dict[str, bytes]) -> Path:
+    """Write checked files under an emptied ``folder``; returns the main document's path. Paths
+    that would leave the folder are refused once more, as a last line of defence."""
+    if folder.exists():
+        shutil.rmtree(folder)
+    folder.mkdir(parents=True)
+    root = folder.resolve()
+    for rel, data in files.items():
+        target = (root / rel).resolve()
+        if root not in target.parents:
+            raise ValueError(f"scene file path {rel!r} leaves the scene folder")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(data)
+    main = root / MAIN_XML_NAME
+    main.write_text(xml, encoding="utf-8")
+    return main
+
+
+def stage_scene(scene: SceneSpec, folder: Path, limits: UploadLimits, base_dir: Path | None = None) -> Path | None:
+    """The file a job's scene loads from: ``None`` for a built-in, the staged ``scene.xml`` of an
+    upload (checked against ``limits``; raises :class:`schemas.errors.InvalidJob`), or the local
+    file of a :class:`PathScene` resolved against ``base_dir`` (trusted callers only: the service
+    refuses host paths before this)."""
+    if isinstance(scene, BuiltinScene):
+        return None
+    if isinstance(scene, XmlScene):
+        files = check_scene_upload(scene.xml, scene.files, limits)
+        return write_scene_files(folder, scene.xml, files)
+    if isinstance(scene, PathScene):
+        path = Path(scene.path)
+        return path if path.is_absolute() or base_dir is None else base_dir / path
+    raise TypeError(f"unsupported scene source {type(scene).__name__}")
