@@ -1,1 +1,1 @@
-"""The ``ndrf`` command line: ``gradient``, ``run``, ``serve``, ``worker``, ``bench``."""
+"""The ``ndrf`` command line: ``gradient``, ``run``, ``serve``, ``worker``."""

@@ -23,9 +23,13 @@ def read_job(path: str | Path) -> JobSpec:
     offending field and what is allowed, before anything is loaded or rendered."""
     path = Path(path)
     try:
-        raw = json.loads(path.read_text())
+        raw = json.loads(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise click.ClickException(f"{path}: not UTF-8 text (byte {exc.start}): a job file is JSON") from None
     except json.JSONDecodeError as exc:
         raise click.ClickException(f"{path}: not valid JSON: {exc}") from None
+    except OSError as exc:
+        raise click.ClickException(f"{path}: cannot read: {exc.strerror}") from None
     try:
         return JobSpec.model_validate(raw)
     except ValidationError as exc:

@@ -5,9 +5,11 @@ from __future__ import annotations
 import click
 
 from cli.common import setup_logging
+from cli.experiment import compare_command, experiment_command
 from cli.gradient import gradient_command
+from cli.remote import fetch_command, ls_command, submit_command, watch_command
 from cli.run import run_command
-from cli.service import bench_command, serve_command, worker_command
+from cli.service import serve_command, worker_command
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -21,7 +23,8 @@ main.add_command(gradient_command)
 main.add_command(run_command)
 main.add_command(serve_command)
 main.add_command(worker_command)
-main.add_command(bench_command)
+for command in (experiment_command, compare_command, submit_command, watch_command, fetch_command, ls_command):
+    main.add_command(command)
 
 if __name__ == "__main__":
     main()

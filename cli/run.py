@@ -12,7 +12,14 @@ from cli.common import read_job
 
 def _progress_hooks(total: int):
     """Rich progress bar fed by the run's events (iteration, loss, ETA)."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                         TextColumn("loss {task.fields[loss]}"), TimeElapsedColumn(), TextColumn("ETA"),
@@ -26,6 +33,10 @@ def _progress_hooks(total: int):
                             loss=f"{event['loss']:.4g}")
         elif kind == "resumed":
             progress.update(task, completed=event["iteration"], description="resumed")
+        elif kind == "warmup":
+            residual = event.get("residual_differential") or event.get("residual_primal")
+            progress.update(task, description=f"warm-up {event['steps']}/{event['planned']} steps"
+                                              + (f", residual {residual:.3g}" if residual is not None else ""))
         elif kind == "plan":
             progress.update(task, description="training fields" if any(event["plan"]["fields"].values()) else "optimizing")
 
@@ -48,30 +59,40 @@ def _final_table(summary: dict):
 @click.command("run")
 @click.argument("job_path", type=click.Path(exists=True, dir_okay=False))
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True, help="Job folder for the artifacts.")
-@click.option("--resume", is_flag=True, help="Continue a killed run from its last checkpoint in OUT.")
+@click.option("--resume", is_flag=True, help="Continue a killed or interrupted run from its last checkpoint in OUT.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def run_command(job_path: str, out_dir: str, resume: bool, quiet: bool) -> None:
-    """Recover the job's parameters in-process; artifacts go to OUT (see README, 'Job folder')."""
+    """Recover the job's parameters in-process; artifacts go to OUT (see README, 'Job folder').
+    Ctrl-C stops at the next training step with a checkpoint: continue with --resume."""
+    import signal
+
     from rich.console import Console
 
-    from services.optimize.loop import InverseRenderingRun, RunHooks
-    from services.store.layout import JobFolder
+    from services.jobs.local import OutFolderInUse, run_local
 
     spec = read_job(job_path)
-    folder = JobFolder(out_dir)
-    if folder.summary_path.is_file() and not resume:
-        raise click.ClickException(f"{out_dir} already holds a finished run; use --resume or another --out")
-    run = InverseRenderingRun(spec, folder, base_dir=Path(job_path).resolve().parent)
     console = Console(stderr=True)
-    if quiet:
-        summary = run.execute(resume=resume)
-    else:
-        progress, on_event = _progress_hooks(spec.iterations)
-        run.hooks = RunHooks(on_event=on_event)
-        with progress:
-            summary = run.execute(resume=resume)
-    if summary["final"] is not None:
+    interrupted: list[str] = []
+    previous = signal.signal(signal.SIGINT, lambda *_: interrupted.append("interrupted"))
+    stop = lambda: interrupted[0] if interrupted else None
+    try:
+        if quiet:
+            summary = run_local(spec, Path(out_dir), base_dir=Path(job_path).resolve().parent, resume=resume,
+                                should_stop=stop)
+        else:
+            progress, on_event = _progress_hooks(spec.iterations)
+            with progress:
+                summary = run_local(spec, Path(out_dir), base_dir=Path(job_path).resolve().parent, resume=resume,
+                                    on_event=on_event, should_stop=stop)
+    except OutFolderInUse as exc:
+        raise click.ClickException(str(exc)) from None
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if summary.get("final") is not None:
         console.print(_final_table(summary))
+    if summary["status"] == "interrupted":
+        raise click.ClickException(f"interrupted after {summary['iterations']} iteration(s): continue with "
+                                   f"ndrf run {job_path} --out {out_dir} --resume")
     if summary["status"] != "succeeded":
         raise click.ClickException(f"job {summary['status']}: {summary.get('error') or ''}".strip())
     console.print(f"artifacts in {out_dir}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ipaddress
 import logging
 
 import click
@@ -9,19 +10,45 @@ import click
 log = logging.getLogger(__name__)
 
 
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
 @click.command("serve")
 @click.option("--host", default="127.0.0.1", show_default=True, help="Interface to bind.")
 @click.option("--port", default=8000, show_default=True, type=click.IntRange(1, 65535), help="Port.")
-def serve_command(host: str, port: int) -> None:
-    """Run the HTTP API and the dashboard. Without REDIS_URL, jobs run in this process."""
+@click.option("--workers", "processes", default=1, show_default=True, type=click.IntRange(1, 64),
+              help="API processes sharing the port (Redis mode only: the embedded queue lives in one process).")
+def serve_command(host: str, port: int, processes: int) -> None:
+    """Run the HTTP API and the dashboard. Without REDIS_URL, jobs run in this process's workers.
+
+    Secure by default: on a non-loopback address it refuses to start without API keys
+    (NDRF_API_KEYS), unless NDRF_ALLOW_ANONYMOUS=1 says anonymous access is intended."""
     import uvicorn
 
     from api.app import create_app
     from services.settings import get_settings
 
     settings = get_settings()
+    if not is_loopback(host) and not settings.auth and not settings.allow_anonymous:
+        raise click.ClickException(f"refusing to serve {host} without API keys: set NDRF_API_KEYS (and "
+                                   f"NDRF_ADMIN_KEYS), or NDRF_ALLOW_ANONYMOUS=1 if anyone who reaches {host} "
+                                   f"may run jobs and read every job")
     click.echo(f"ndrf serve on http://{host}:{port} (store {settings.store}, "
-               f"{'redis ' + settings.redis_url if settings.redis_url else 'embedded workers'})", err=True)
+               f"{'redis ' + settings.redis_url if settings.redis_url else 'embedded workers'}, "
+               f"{'API keys' if settings.auth else 'anonymous'})", err=True)
+    if processes > 1:
+        if not settings.redis_url:
+            raise click.ClickException("--workers > 1 needs REDIS_URL: embedded mode keeps its queue in one process")
+        # Each process builds its app from the environment (the store and Redis are shared state).
+        uvicorn.run("api.app:create_app", factory=True, workers=processes, host=host, port=port, log_level="info",
+                    timeout_graceful_shutdown=10)
+        return
     uvicorn.run(create_app(settings), host=host, port=port, log_level="info", timeout_graceful_shutdown=10)
 
 
@@ -32,22 +59,13 @@ def worker_command(burst: bool, name: str | None) -> None:
     """Consume jobs from the Redis queue (REDIS_URL is required)."""
     from services.runtime import build_runtime
     from services.settings import get_settings
-    from worker.main import Worker
+    from worker.main import make_worker
 
     settings = get_settings()
     if not settings.redis_url:
         raise click.ClickException("ndrf worker needs REDIS_URL; without Redis, 'ndrf serve' runs jobs itself")
     runtime = build_runtime(settings)
-    worker = Worker(runtime.service, runtime.queue, runtime.events, lease_seconds=settings.lease_seconds,
-                    max_attempts=settings.max_attempts, name=name, reconcile=runtime.reconcile_periodically)
-    reason = worker.work(burst=burst, install_signals=True)
+    if not burst:
+        runtime.start_experiment_scheduler()   # admits experiment runs even while no API process is up
+    reason = make_worker(runtime, name).work(burst=burst, install_signals=True)
     click.echo(f"worker exited: {reason}", err=True)
-
-
-@click.command("bench", context_settings={"ignore_unknown_options": True, "help_option_names": []})
-@click.argument("args", nargs=-1, type=click.UNPROCESSED)
-def bench_command(args: tuple[str, ...]) -> None:
-    """What accuracy costs in time (same as python -m bench; --quick runs in under 10 minutes)."""
-    from bench.__main__ import main
-
-    main(list(args))

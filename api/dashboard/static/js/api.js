@@ -1,7 +1,9 @@
 // The API client: fetch with the bearer key, RFC 9457 problems as errors, SSE subscriptions.
 //
 // A 401 asks for the key once (the prompt is installed by app.js), keeps it in sessionStorage
-// and retries. EventSource and <img>/<a> cannot send headers: their URLs carry ?access_token=.
+// and retries. EventSource and <img>/<a> cannot send headers: their URLs carry ?token=, a
+// short-lived read token of that one job (every job document the API returns has one); the key
+// itself never goes into a URL.
 
 const STORAGE = "ndrf.apiKey";
 let prompt = async () => { throw new Error("no API key prompt installed"); };
@@ -57,19 +59,30 @@ export async function request(path, { method = "GET", body, headers = {}, signal
   }
 }
 
+const readTokens = new Map();             // job id -> its latest read token
+
+function remember(document) {
+  for (const job of [document, ...(Array.isArray(document?.items) ? document.items : [])]) {
+    if (job && typeof job.id === "string" && job.read_token) readTokens.set(job.id, job.read_token);
+  }
+  return document;
+}
+
 export async function getJSON(path, options) {
-  return (await request(path, options)).json();
+  return remember(await (await request(path, options)).json());
 }
 
 export async function postJSON(path, body, options = {}) {
-  return (await request(path, { ...options, method: "POST", body })).json();
+  return remember(await (await request(path, { ...options, method: "POST", body })).json());
 }
 
-/** A URL for <img>, <a> and EventSource: the key goes in ?access_token=. */
+/** A URL for <img>, <a> and EventSource under /v1/jobs/<id>/: it carries ?token= with that job's
+ * read token (fetch the job first; without API keys there is no token and none is needed). */
 export function authUrl(path) {
-  const key = apiKey();
-  if (!key) return path;
-  return `${path}${path.includes("?") ? "&" : "?"}access_token=${encodeURIComponent(key)}`;
+  const match = /^\/v1\/jobs\/([0-9a-f]{20})(\/|$|\?)/.exec(path);
+  const token = match && readTokens.get(match[1]);
+  if (!token) return path;
+  return `${path}${path.includes("?") ? "&" : "?"}token=${encodeURIComponent(token)}`;
 }
 
 /**

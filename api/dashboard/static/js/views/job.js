@@ -8,7 +8,7 @@ import { imagesPanel } from "./job-images.js";
 import { currentValues, parametersPanel } from "./job-parameters.js";
 import { planView } from "./plan.js";
 
-const PHASES = [["training", "#6366f1"], ["rendering", "#f59e0b"], ["gradient", "#10b981"]];
+const PHASES = [["training", "#6366f1"], ["gradient", "#10b981"], ["images", "#f59e0b"]];
 
 function card(title, testid, ...body) {
   return h("section.card", { dataset: { testid } }, h("div.card-head", h("h2", title)), ...body);
@@ -22,7 +22,8 @@ function stat(label, testid) {
 
 export function jobView(root, jobId) {
   const base = `/v1/jobs/${encodeURIComponent(jobId)}`;
-  const state = { job: null, records: new Map(), measuredAt: 0, lastSeq: 0, checkpoint: null, canceling: false };
+  const state = { job: null, records: new Map(), measuredAt: 0, lastSeq: 0, checkpoint: null, canceling: false,
+    warmup: null };
   let stream = null, alive = true, frame = 0, retry = null, planShown = "";
 
   // ------------------------------------------------------------------ skeleton
@@ -38,6 +39,11 @@ export function jobView(root, jobId) {
     error: stat("max |p − target|", "parameter-error"), elapsed: stat("Elapsed", "elapsed"), eta: stat("ETA", "eta"),
   };
   const lossChart = h("div.chart", { dataset: { testid: "loss-chart" } });
+  const warmupBar = h("div.progress-bar", { style: { width: "0%" } });
+  const warmupText = h("div.warmup-text.num", { dataset: { testid: "warmup-text" } });
+  const warmup = h("div.warmup", { hidden: true, dataset: { testid: "warmup" } }, h("div.progress", warmupBar), warmupText);
+  const sweep = h("a.btn", { href: `#/sweep/${encodeURIComponent(jobId)}`, dataset: { testid: "sweep-link" } }, "Sweep this job");
+  const experimentLink = h("a.sub", { hidden: true, dataset: { testid: "experiment-link" } });
   const timeChart = h("div.chart", { dataset: { testid: "timing-chart" } });
   const parameters = parametersPanel();
   const images = imagesPanel(jobId);
@@ -46,13 +52,13 @@ export function jobView(root, jobId) {
 
   clear(root,
     h("div.page-head", h("a.back", { href: "#/jobs" }, "← Jobs"),
-      h("div.title-block", h("div.title-line", title, badge, connection), idLine),
-      h("span.spacer"), cancel),
+      h("div.title-block", h("div.title-line", title, badge, connection), idLine, experimentLink),
+      h("span.spacer"), sweep, cancel),
     alert,
     h("div.stats", Object.values(stats).map((s) => s.element)),
     h("div.grid-2",
       h("div.stack",
-        card("Loss", "loss-card", lossChart, h("p.muted.small", "Image loss per iteration (log scale).")),
+        card("Loss", "loss-card", warmup, lossChart, h("p.muted.small", "Image loss per iteration (log scale).")),
         card("Seconds per phase", "timing-card", timeChart, legend(PHASES.map(([label, color]) => ({ label, color }))),
           h("p.muted.small", "Seconds of each iteration: field training, candidate render, gradient query."))),
       h("div.stack",
@@ -118,6 +124,7 @@ export function jobView(root, jobId) {
       plan: seen((event) => { state.job.plan = event.plan; }),
       iteration: seen((event) => { state.records.set(event.iteration, event); state.job.iteration = event.iteration; }),
       checkpoint: seen((event) => { state.checkpoint = event.iteration; }),
+      warmup: seen((event) => { state.warmup = event; }),
       resumed: seen((event) => {          // a new attempt recomputes the iterations after its checkpoint
         for (const k of [...state.records.keys()]) if (k >= event.iteration) state.records.delete(k);
         state.job.iteration = event.iteration - 1;
@@ -194,6 +201,7 @@ export function jobView(root, jobId) {
     if (job.error) showAlert(job.field ? `${job.field}: ${job.error}` : job.error);
 
     drawStats(job, records, finished);
+    drawWarmup(job, records);
     lineChart(lossChart, { series: [{ label: "loss", color: PALETTE[0], points: records.map((r) => [r.iteration, r.loss]) }],
       logY: true });
     stackedBars(timeChart, { x: records.map((r) => r.iteration),
@@ -208,6 +216,24 @@ export function jobView(root, jobId) {
     }
   }
 
+
+  /** Warm-up (inside iteration 0, minutes on large scenes): training steps done of planned and
+   * both residual norms, from the loop's warmup events, until the first iteration arrives. */
+  function drawWarmup(job, records) {
+    if (job.experiment) {
+      experimentLink.hidden = false;
+      experimentLink.href = `#/experiments/${job.experiment}`;
+      experimentLink.textContent = `run of experiment ${job.experiment}`;
+    }
+    const event = state.warmup;
+    warmup.hidden = !event || records.length > 0 || job.status !== "running";
+    if (warmup.hidden) return;
+    const fraction = event.planned ? Math.min(1, event.steps / event.planned) : 0;
+    warmupBar.style.width = `${(100 * fraction).toFixed(1)}%`;
+    warmupText.dataset.steps = String(event.steps);
+    warmupText.textContent = `Warm-up: ${event.steps} / ${event.planned} training steps before the first gradient`
+      + ` · residual L_φ ${fmtNum(event.residual_primal, 3)} · dL_θ ${fmtNum(event.residual_differential, 3)}`;
+  }
 
   function drawStats(job, records, finished) {
     const count = done();
