@@ -22,9 +22,8 @@ SCENES = {  # scene: (parameter, what it shows)
 
 def run(quick: bool) -> dict:
     from schemas.solver import TrainingConfig
-    from services.estimators.gradients import Fields
-    from services.estimators.methods import make_method
-    from services.estimators.training import FieldTrainer
+    from services.solver.estimators.methods import Fields, make_method
+    from services.solver.estimators.training import FieldTrainer
 
     reference_spp = 512 if quick else 4096
     sample_spp = [1, 4, 16, 64] if quick else [1, 4, 16, 64, 256, 1024]
@@ -59,7 +58,7 @@ def run(quick: bool) -> dict:
             done = steps
             fields = Fields(trainer.radiance, trainer.differential)
             for name, spps in query_spp.items():
-                method = make_method(name, plan=planned.plan)
+                method = make_method(name, planned.plan)
                 training = spent["radiance"] if name == "radiance-cache" else spent["both"]
                 for spp in spps:
                     with timed() as t:

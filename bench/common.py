@@ -12,23 +12,25 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
+def _lines(path: str) -> list[str]:
+    try:
+        with open(path) as handle:
+            return handle.readlines()
+    except OSError:
+        return []
+
+
 def machine() -> dict:
     """What the numbers were measured on."""
     cpu = platform.processor() or platform.machine()
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    for line in _lines("/proc/cpuinfo"):
+        if line.startswith("model name"):
+            cpu = line.split(":", 1)[1].strip()
+            break
     memory = None
-    try:
-        for line in open("/proc/meminfo"):
-            if line.startswith("MemTotal"):
-                memory = f"{int(line.split()[1]) / 2**20:.1f} GiB"
-    except OSError:
-        pass
+    for line in _lines("/proc/meminfo"):
+        if line.startswith("MemTotal"):
+            memory = f"{int(line.split()[1]) / 2**20:.1f} GiB"
     import drjit
     import mitsuba
     import torch
@@ -67,19 +69,20 @@ def timed():
 
 def problem(scene: str, keys: list[str], resolution=(64, 64), method: str | None = None):
     """A Problem for a built-in scene, planned for ``method`` when given."""
-    from services.backend import use_mitsuba, use_torch
+    from services.solver.backend import use_mitsuba, use_torch
 
     use_mitsuba(), use_torch()
-    from services.estimators.context import Problem
-    from services.scene.facts import probe_scene
-    from services.scene.load import load_scene
-    from services.scene.params import ParameterSet
-    from services.scene.planner import plan_effects
+    from services.solver.estimators.methods import method_class
+    from services.solver.estimators.problem import Problem
+    from services.solver.scene.facts import probe_scene
+    from services.solver.scene.load import load_scene
+    from services.solver.scene.params import ParameterSet
+    from services.solver.scene.planner import plan_effects
 
     loaded = load_scene(builtin=scene, resolution=resolution)
     prob = Problem(loaded, ParameterSet(loaded.params, keys))
     if method is not None:
-        prob.apply_plan(plan_effects(probe_scene(loaded, prob.parameters), method))
+        prob.apply_plan(plan_effects(probe_scene(loaded, prob.parameters), method, method_class(method).uses))
     return prob
 
 

@@ -35,14 +35,13 @@ def main() -> None:
     args = parser.parse_args()
 
     from schemas.solver import TrainingConfig
-    from services.backend import use_mitsuba, use_torch
+    from services.solver.backend import use_mitsuba, use_torch
     use_mitsuba(), use_torch()
-    from services.estimators.context import Problem
-    from services.estimators.gradients import Fields
-    from services.estimators.methods import make_method
-    from services.estimators.training import FieldTrainer
-    from services.scene.load import load_scene
-    from services.scene.params import ParameterSet
+    from services.solver.estimators.methods import Fields, make_method
+    from services.solver.estimators.problem import Problem
+    from services.solver.estimators.training import FieldTrainer
+    from services.solver.scene.load import load_scene
+    from services.solver.scene.params import ParameterSet
 
     scene = load_scene(builtin=args.scene, resolution=(64, 64))
     problem = Problem(scene, ParameterSet(scene.params, [args.key]))

@@ -27,10 +27,9 @@ def _errors(g, reference) -> dict:
 
 def run(quick: bool) -> dict:
     from schemas.solver import TrainingConfig
-    from services.estimators.gradients import Fields
-    from services.estimators.methods import make_method
-    from services.estimators.reference import Prb
-    from services.estimators.training import FieldTrainer
+    from services.solver.estimators.methods import Fields, make_method
+    from services.solver.estimators.methods.prb import Prb
+    from services.solver.estimators.training import FieldTrainer
 
     depths = [2, 4, 8, 16] if quick else [2, 3, 4, 6, 8, 12, 16]
     spp, repeats = 16, (2 if quick else 3)
@@ -48,7 +47,7 @@ def run(quick: bool) -> dict:
     config = TrainingConfig()
     trainer = FieldTrainer(planned, config, radiance=True, differential=True, seed=0)
     trainer.train(150 if quick else 600)
-    ndrf = make_method("ndrf-rhs", plan=planned.plan)
+    ndrf = make_method("ndrf-rhs", planned.plan)
     fields = Fields(trainer.radiance, trainer.differential)
     ndrf.images(planned, fields, spp=1, seed=0)
     with timed() as t:

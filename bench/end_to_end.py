@@ -17,8 +17,9 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def run(quick: bool) -> dict:
     from schemas.job import JobSpec
-    from services.optimize.loop import InverseRenderingRun
-    from services.store.layout import JobFolder
+    from services.jobs.local import run_local
+    from services.store.job import JobFiles
+    from services.store.local import FolderStore
 
     base = json.loads((ROOT / "examples" / "hidden-object.json").read_text())
     base.update(images_every=1000, checkpoint_every=1000)
@@ -29,9 +30,9 @@ def run(quick: bool) -> dict:
     for method in ("ndrf-rhs", "ndrf-lhs", "prb", "radiance-cache", "direct"):
         log.info("end to end: %s", method)
         with tempfile.TemporaryDirectory() as tmp:
-            folder = JobFolder(tmp)
-            summary = InverseRenderingRun(JobSpec.model_validate(dict(base, method=method)), folder).execute()
-            records = [folder.iteration_record(k) for k in folder.iterations()]
+            summary = run_local(JobSpec.model_validate(dict(base, method=method)), Path(tmp) / "job")
+            files = JobFiles(FolderStore(tmp), "job")
+            records = [files.iteration_record(k) for k in files.iterations()]
         elapsed, curve = 0.0, []
         target = np.asarray(summary["target"])
         for record in records:

@@ -17,12 +17,13 @@ from pathlib import Path
 import numpy as np
 
 from bench.report import pyplot, save
-from services.store.layout import JobFolder
+from services.store.job import JobFiles
+from services.store.local import FolderStore
 
 CHANNEL_COLORS = ("#dc2626", "#16a34a", "#2563eb")
 
 
-def _trajectory(folder: JobFolder) -> tuple[np.ndarray, np.ndarray]:
+def _trajectory(folder: JobFiles) -> tuple[np.ndarray, np.ndarray]:
     """(iterations K, parameter values K x P) including the value after the last step."""
     records = [folder.iteration_record(k) for k in folder.iterations()]
     values = [r["parameters"] for r in records] + [records[-1]["updated_parameters"]]
@@ -31,16 +32,17 @@ def _trajectory(folder: JobFolder) -> tuple[np.ndarray, np.ndarray]:
 
 def job_figure(folders: list[Path], out: Path) -> None:
     plt = pyplot()
-    jobs = [JobFolder(f) for f in folders]
+    jobs = [JobFiles(FolderStore(Path(f).resolve().parent), Path(f).resolve().name) for f in folders]
     specs = [job.read("spec.json") for job in jobs]
     first = jobs[0]
-    gradients = [np.load(j.iteration_dir(j.iterations()[0]) / "gradients.npy")[0].sum(axis=-1) for j in jobs]
+    gradients = [np.load(j.store.local_path(j.iteration_key(j.iterations()[0], "gradients.npy")))[0].sum(axis=-1)
+                 for j in jobs]
     scale = max(float(np.percentile(np.abs(g), 99)) for g in gradients) or 1.0    # robust to fireflies
 
     fig = plt.figure(figsize=(3.0 * (len(jobs) + 1), 6.4))
     grid = fig.add_gridspec(2, len(jobs) + 1, height_ratios=(1.0, 1.1))
     ax = fig.add_subplot(grid[0, 0])
-    target = np.load(first.target_path(0, "npy"))
+    target = np.load(first.store.local_path(first.target_key(0, "npy")))
     ax.imshow(np.clip(target / max(np.percentile(target, 99.5), 1e-8), 0, 1) ** (1 / 2.2))
     ax.set_title("target", fontsize=9)
     ax.axis("off")

@@ -15,7 +15,7 @@ CASES = [  # name, scene, keys, method, overrides that undo the plan's savings
      {"merge_channels": False}),
     ("Cornell box, light intensity: no L_phi, no (∂f) L", "cornell-box", ["light.emitter.radiance.value"], "ndrf-lhs",
      {"radiance_field": "on", "bsdf_term": "on"}),
-    ("Closet box: a parameter no camera path reaches is dropped", "closet", ["red.reflectance.value",
+    ("Closet box: a parameter no camera path reaches is dropped", "closet-box", ["red.reflectance.value",
                                                                              "hidden-paint.reflectance.value"],
      "ndrf-rhs", {"drop_unreachable": False}),
     ("Mirror box: delta depth 1 instead of 8", "mirror-box", ["sphere.reflectance.value"], "direct",
@@ -25,27 +25,24 @@ CASES = [  # name, scene, keys, method, overrides that undo the plan's savings
 
 def _problem(scene: str, keys: list[str], method: str, overrides: dict):
     from schemas.job import EffectOverrides
-    from services.estimators.context import Problem
-    from services.scene.facts import probe_scene
-    from services.scene.load import load_scene
-    from services.scene.params import ParameterSet
-    from services.scene.planner import plan_effects
+    from services.solver.estimators.methods import method_class
+    from services.solver.estimators.problem import Problem
+    from services.solver.scene.facts import probe_scene
+    from services.solver.scene.load import load_scene
+    from services.solver.scene.params import ParameterSet
+    from services.solver.scene.planner import plan_effects
 
-    if scene == "closet":
-        from tests.scenes import closet_box
-
-        loaded = load_scene(mitsuba_dict=closet_box(), resolution=(64, 64))
-    else:
-        loaded = load_scene(builtin=scene, resolution=(64, 64))
+    loaded = load_scene(builtin=scene, resolution=(64, 64))
     prob = Problem(loaded, ParameterSet(loaded.params, keys))
-    prob.apply_plan(plan_effects(probe_scene(loaded, prob.parameters), method, EffectOverrides(**overrides)))
+    prob.apply_plan(plan_effects(probe_scene(loaded, prob.parameters), method, method_class(method).uses,
+                                EffectOverrides(**overrides)))
     return prob
 
 
 def run(quick: bool) -> dict:
     from schemas.solver import TrainingConfig
-    from services.estimators.methods import make_method
-    from services.optimize.gradient import fields_of, make_trainer
+    from services.solver.estimators.methods import make_method
+    from services.solver.estimators.training import fields_of, trainer_for
 
     steps = 15 if quick else 40
     rows = []
@@ -53,8 +50,8 @@ def run(quick: bool) -> dict:
         timings = {}
         for label, overrides in (("planned", {}), ("everything on", undo)):
             prob = _problem(scene, keys, method, overrides)
-            estimator = make_method(method, plan=prob.plan)
-            trainer = make_trainer(prob, estimator, TrainingConfig(), seed=0)
+            estimator = make_method(method, prob.plan)
+            trainer = trainer_for(prob, estimator, TrainingConfig(), seed=0)
             if trainer is not None:
                 trainer.train(3)
                 with timed() as t:

@@ -21,8 +21,8 @@ log = logging.getLogger(__name__)
 def textured_box(side: int) -> dict:
     import numpy as np
 
-    from services.backend import use_mitsuba
-    from services.scene.builtin import cornell_box
+    from services.solver.backend import use_mitsuba
+    from services.solver.scene.builtin import cornell_box
 
     mi = use_mitsuba()
     d = cornell_box()
@@ -35,20 +35,21 @@ def textured_box(side: int) -> dict:
 
 def measure(side: int, steps: int) -> dict:
     """Runs in a child process: plan, build the trainer, time ``steps`` training steps."""
-    from services.backend import use_mitsuba, use_torch
+    from services.solver.backend import use_mitsuba, use_torch
 
     use_mitsuba(), use_torch()
     from schemas.solver import TrainingConfig
-    from services.estimators.context import Problem
-    from services.estimators.training import FieldTrainer
-    from services.scene.facts import probe_scene
-    from services.scene.load import load_scene
-    from services.scene.params import ParameterSet
-    from services.scene.planner import plan_effects
+    from services.solver.estimators.methods import method_class
+    from services.solver.estimators.problem import Problem
+    from services.solver.estimators.training import FieldTrainer
+    from services.solver.scene.facts import probe_scene
+    from services.solver.scene.load import load_scene
+    from services.solver.scene.params import ParameterSet
+    from services.solver.scene.planner import plan_effects
 
     scene = load_scene(mitsuba_dict=textured_box(side), resolution=(64, 64))
     prob = Problem(scene, ParameterSet(scene.params, ["back.bsdf.reflectance.data"]))
-    prob.apply_plan(plan_effects(probe_scene(scene, prob.parameters), "ndrf-rhs"))
+    prob.apply_plan(plan_effects(probe_scene(scene, prob.parameters), "ndrf-rhs", method_class("ndrf-rhs").uses))
     trainer = FieldTrainer(prob, TrainingConfig(), radiance=True, differential=True, seed=0)
     trainer.train(5)                                          # compile and warm up outside the clock
     start = time.perf_counter()
