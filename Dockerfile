@@ -21,8 +21,7 @@ COPY services/ services/
 COPY api/ api/
 COPY worker/ worker/
 COPY cli/ cli/
-COPY bench/ bench/
-RUN pip install --no-cache-dir . \
+RUN pip install --no-cache-dir ".[s3]" \
  && useradd --uid 10001 --create-home ndrf \
  && mkdir -p /data/runs && chown -R ndrf /data
 

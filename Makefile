@@ -8,7 +8,7 @@ BIN := $(VENV)/bin
 LLVM := /usr/lib/x86_64-linux-gnu/libLLVM-19.so
 export DRJIT_LIBLLVM_PATH ?= $(LLVM)
 
-.PHONY: install system-deps demo test test-fast bench clean
+.PHONY: install system-deps demo check test test-fast bench clean
 
 system-deps:
 	@if [ ! -e "$(LLVM)" ]; then \
@@ -29,6 +29,11 @@ install: $(BIN)/ndrf
 
 demo: install
 	$(BIN)/ndrf -v run examples/demo.json --out runs/demo
+
+check: install
+	$(BIN)/lint-imports
+	$(BIN)/ruff check .
+	$(BIN)/mypy
 
 test: install
 	$(BIN)/python -m pytest

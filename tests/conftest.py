@@ -2,12 +2,87 @@
 
 from __future__ import annotations
 
+import signal
+
 import pytest
+
+from tests.service import Process, RedisServer, open_test_store, start_api
 
 
 @pytest.fixture(scope="session")
 def mi():
-    from services.backend import use_mitsuba, use_torch
+    from services.solver.backend import use_mitsuba, use_torch
 
     use_torch()
     return use_mitsuba()
+
+
+@pytest.fixture(scope="session")
+def s3_server():
+    """moto's S3 server on loopback, in a child process, for the whole session (tests/s3server.py)."""
+    from tests.s3server import S3Server
+
+    server = S3Server().start()
+    yield server
+    server.stop()
+
+
+@pytest.fixture
+def s3_store(s3_server):
+    """An S3Store on a fresh prefix of the session's bucket."""
+    import uuid
+
+    from services.store.s3 import S3Store
+    from tests.s3server import ACCESS_KEY, REGION, SECRET_KEY
+
+    store = S3Store(f"s3://ndrf/t-{uuid.uuid4().hex[:12]}", endpoint=s3_server.endpoint, access_key_id=ACCESS_KEY,
+                    secret_access_key=SECRET_KEY, region=REGION)
+    yield store
+    store.close()
+
+
+# ------------------------------------------------------------------ the service, in processes
+
+@pytest.fixture()
+def redis_server():
+    server = RedisServer().start()
+    yield server
+    server.stop()
+
+
+@pytest.fixture(params=["folder", "s3"])
+def store_env(request, tmp_path):
+    """Where the service keeps its artifacts: a folder (the embedded default) or a bucket of the
+    moto S3 server on loopback (a fresh prefix per test: no folder is shared then)."""
+    if request.param == "folder":
+        return {"NDRF_STORE": str(tmp_path / "store")}
+    return request.getfixturevalue("s3_server").env(prefix=f"t-{tmp_path.name}")
+
+
+@pytest.fixture()
+def stack(tmp_path, redis_server, store_env):
+    """API + workers sharing one Redis and one store; ``add_worker()`` starts another worker, with
+    a scratch folder of its own."""
+    env = {"REDIS_URL": redis_server.url, "NDRF_LEASE_SECONDS": "3", "NDRF_SCRATCH": str(tmp_path / "scratch-api"),
+           **store_env}
+    processes = []
+
+    class Stack:
+        def __init__(self):
+            self.env = env
+            self.store = open_test_store(env)
+            api_proc, self.api = start_api(tmp_path, env)
+            processes.append(api_proc)
+            self.workers = []
+
+        def add_worker(self, name, **extra_env):
+            worker = Process(["-v", "worker", "--name", name],
+                             {**env, "NDRF_SCRATCH": str(tmp_path / f"scratch-{name}"), **extra_env},
+                             tmp_path / f"{name}.log")
+            processes.append(worker)
+            self.workers.append(worker)
+            return worker
+
+    yield Stack()
+    for proc in processes:      # no graceful shutdown here: a worker would first finish its iteration
+        proc.kill(signal.SIGKILL)

@@ -5,13 +5,13 @@ from __future__ import annotations
 
 
 def _t():
-    from services.backend import use_mitsuba
+    from services.solver.backend import use_mitsuba
 
     return use_mitsuba().ScalarTransform4f
 
 
 def _box():
-    from services.scene.builtin import cornell_box
+    from services.solver.scene.builtin import cornell_box
 
     return cornell_box()
 
@@ -46,7 +46,8 @@ def grazing() -> dict:
         "sensor": {"type": "perspective", "fov": 30, "to_world": T().look_at(origin=eye, target=[0, 0, 0], up=[0, 1, 0]),
                    "film": {"type": "hdrfilm", "width": 16, "height": 16, "rfilter": {"type": "box"}}},
         "paint": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.5, 0.5]}},
-        "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(3), "bsdf": {"type": "ref", "id": "paint"}},
+        "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(3),
+                  "bsdf": {"type": "ref", "id": "paint"}},
         "light": {"type": "rectangle", "to_world": T().translate([0, 2, 0]).rotate([1, 0, 0], 90).scale(0.5),
                   "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [10, 10, 10]}}},
     }

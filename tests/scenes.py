@@ -1,10 +1,10 @@
-"""Small scenes built by the tests (the product's tests never read ../shared)."""
+"""Small scenes built by the tests (the product's tests never read ../shared), in one place."""
 
 from __future__ import annotations
 
 
 def _t():
-    from services.backend import use_mitsuba
+    from services.solver.backend import use_mitsuba
 
     return use_mitsuba().ScalarTransform4f
 
@@ -43,16 +43,55 @@ def area_probe() -> dict:
     }
 
 
-def closet_box() -> dict:
-    """The Cornell box plus a closed cube (the closet) hiding a sphere with its own material: no
-    light and no camera path reaches the sphere, so its parameters cannot change the image."""
-    from services.scene.builtin import cornell_box
+# An uploaded scene: an include and a mesh in a sub-folder, so paths must resolve relative to the XML.
+UPLOAD_XML = """<scene version="3.0.0">
+  <include filename="materials.xml"/>
+  <sensor type="perspective">
+    <transform name="to_world"><lookat origin="0, 3, 3" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="12"/></film>
+  </sensor>
+  <shape type="obj"><string name="filename" value="meshes/quad.obj"/><ref id="paint"/></shape>
+  <emitter type="constant"><rgb name="radiance" value="1, 1, 1"/></emitter>
+</scene>"""
+UPLOAD_MATERIALS = ('<scene version="3.0.0"><bsdf type="diffuse" id="paint">'
+                    '<rgb name="reflectance" value="0.3, 0.4, 0.5"/></bsdf></scene>')
+QUAD_OBJ = "v -1 0 -1\nv 1 0 -1\nv 1 0 1\nv -1 0 1\nf 1 3 2\nf 1 4 3\n"
+#: A self-contained XML (no files at all: the simplest upload there is).
+SELF_CONTAINED_XML = """<scene version="3.0.0">
+  <sensor type="perspective">
+    <transform name="to_world"><lookat origin="0, 3, 3" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="12"/></film>
+  </sensor>
+  <bsdf type="diffuse" id="paint"><rgb name="reflectance" value="0.3, 0.4, 0.5"/></bsdf>
+  <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/></transform><ref id="paint"/></shape>
+  <emitter type="constant"><rgb name="radiance" value="1, 1, 1"/></emitter>
+</scene>"""
 
-    T = _t()
+
+def upload_files() -> dict[str, bytes]:
+    return {"materials.xml": UPLOAD_MATERIALS.encode(), "meshes/quad.obj": QUAD_OBJ.encode()}
+
+
+def upload_scene(xml: str = UPLOAD_XML, files: dict[str, bytes] | None = None) -> dict:
+    """The job file's ``scene`` of the uploaded scene (files as base64)."""
+    import base64
+
+    files = upload_files() if files is None else files
+    return {"xml": xml, "files": {path: base64.b64encode(data).decode() for path, data in files.items()}}
+
+
+def poster_box(height: int = 2, width: int = 3) -> dict:
+    """The Cornell box whose back wall is a grey bitmap of ``height x width`` texels (nearest
+    filter): a parameter (``back.bsdf.reflectance.data``) that is a texture, not a value."""
+    import numpy as np
+
+    from services.solver.backend import use_mitsuba
+    from services.solver.scene.builtin import cornell_box
+
+    mi = use_mitsuba()
     d = cornell_box()
-    d["hidden-paint"] = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.9, 0.1, 0.1]}}
-    d["closet"] = {"type": "cube", "to_world": T().translate([0.55, 0.55, -0.55]).scale(0.3),
-                   "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse"}}}
-    d["treasure"] = {"type": "sphere", "center": [0.55, 0.55, -0.55], "radius": 0.1,
-                     "bsdf": {"type": "ref", "id": "hidden-paint"}}
+    texels = np.full((height, width, 1), 0.7, dtype=np.float32)
+    d["poster"] = {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": mi.Bitmap(texels), "raw": True,
+                                                      "filter_type": "nearest"}}
+    d["back"]["bsdf"] = {"type": "ref", "id": "poster"}
     return d

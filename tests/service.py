@@ -44,7 +44,7 @@ class RedisServer:
     def url(self) -> str:
         return f"redis://127.0.0.1:{self.port}/0"
 
-    def start(self) -> "RedisServer":
+    def start(self) -> RedisServer:
         binary = shutil.which("redis-server")
         if binary is None:
             raise RuntimeError("redis-server is not installed (.ci/run installs it)")
@@ -130,6 +130,19 @@ def start_api(tmp: Path, env: dict[str, str]) -> tuple[Process, Api]:
     return proc, api
 
 
+def open_test_store(env: dict[str, str]):
+    """The store a service process started with ``env`` uses, opened in the test process."""
+    from services.runtime import open_store
+    from services.settings import Settings
+
+    if env["NDRF_STORE"].startswith("s3://"):
+        from services.store.s3 import S3Store
+
+        return S3Store(env["NDRF_STORE"], endpoint=env["NDRF_S3_ENDPOINT"], access_key_id=env["AWS_ACCESS_KEY_ID"],
+                       secret_access_key=env["AWS_SECRET_ACCESS_KEY"], region=env["AWS_REGION"])
+    return open_store(Settings(store=env["NDRF_STORE"]))
+
+
 def small_job(method="ndrf-lhs", iterations=6, **extra) -> dict:
     job = {
         "name": "service test",
@@ -145,17 +158,3 @@ def small_job(method="ndrf-lhs", iterations=6, **extra) -> dict:
     }
     job.update(extra)
     return job
-
-
-# An uploaded scene: an include and a mesh in a sub-folder, so the paths must be kept relative to the XML.
-SCENE = """<scene version="3.0.0">
-  <include filename="materials.xml"/>
-  <sensor type="perspective">
-    <transform name="to_world"><lookat origin="0, 3, 3" target="0, 0, 0" up="0, 1, 0"/></transform>
-    <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
-  </sensor>
-  <shape type="obj"><string name="filename" value="meshes/quad.obj"/><ref id="paint"/></shape>
-  <emitter type="constant"><rgb name="radiance" value="1, 1, 1"/></emitter>
-</scene>"""
-MATERIALS = """<scene version="3.0.0"><bsdf type="diffuse" id="paint"><rgb name="reflectance" value="0.3, 0.4, 0.5"/></bsdf></scene>"""
-QUAD = "v -1 0 -1\nv 1 0 -1\nv 1 0 1\nv -1 0 1\nf 1 3 2\nf 1 4 3\n"

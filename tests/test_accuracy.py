@@ -30,9 +30,9 @@ def _relative(g, ref, where=None):
 
 
 def _setup(scene_name, key, resolution=(64, 64)):
-    from services.estimators.context import Problem
-    from services.scene.load import load_scene
-    from services.scene.params import ParameterSet
+    from services.solver.estimators.problem import Problem
+    from services.solver.scene.load import load_scene
+    from services.solver.scene.params import ParameterSet
 
     scene = load_scene(builtin=scene_name, resolution=resolution)
     return Problem(scene, ParameterSet(scene.params, [key]))
@@ -40,8 +40,8 @@ def _setup(scene_name, key, resolution=(64, 64)):
 
 def _trained(problem, steps):
     from schemas.solver import TrainingConfig
-    from services.estimators.gradients import Fields
-    from services.estimators.training import FieldTrainer
+    from services.solver.estimators.methods import Fields
+    from services.solver.estimators.training import FieldTrainer
 
     trainer = FieldTrainer(problem, TrainingConfig(), radiance=True, differential=True, seed=0)
     trainer.train(steps)
@@ -50,8 +50,7 @@ def _trained(problem, steps):
 
 @pytest.fixture(scope="module")
 def cornell(mi):
-    from services.estimators.gradients import Fields
-    from services.estimators.methods import make_method
+    from services.solver.estimators.methods import Fields, make_method
 
     problem = _setup("cornell-box", "red.reflectance.value")
     reference = make_method("prb").images(problem, Fields(), spp=4096, seed=12345)
@@ -82,10 +81,9 @@ def test_cornell_box_indirect_gradients_off_the_red_wall(cornell):
 
 
 def test_hidden_object_gradient_only_ndrf_sees(mi):
-    from services.estimators.gradients import Fields, contract
-    from services.estimators.methods import make_method
-    from services.estimators.reference import render
-    from services.optimize.losses import image_loss
+    from services.solver.estimators.methods import Fields, make_method
+    from services.solver.estimators.render import render
+    from services.solver.optimize.losses import image_loss
 
     problem = _setup("hidden-object", "hidden.reflectance.value")
     params = problem.parameters
@@ -96,8 +94,8 @@ def test_hidden_object_gradient_only_ndrf_sees(mi):
 
     reference = make_method("prb").loss_gradient(problem, Fields(), dz_dy, spp=2048, seed=5)
     fields = _trained(problem, 250)
-    dz_dp = {name: contract(make_method(name).images(problem, Fields() if name == "direct" else fields,
-                                                      spp=64, seed=6), dz_dy)
+    dz_dp = {name: make_method(name).loss_gradient(problem, Fields() if name == "direct" else fields, dz_dy,
+                                                   spp=64, seed=6)
              for name in ("ndrf-lhs", "ndrf-rhs", "radiance-cache", "direct")}
     print("prb dz/dp", reference, {k: v.tolist() for k, v in dz_dp.items()})
     scale = np.abs(reference).max()

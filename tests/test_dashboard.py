@@ -16,7 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.service import MATERIALS, QUAD, SCENE, small_job, start_api
+from tests.scenes import QUAD_OBJ, UPLOAD_MATERIALS, UPLOAD_XML
+from tests.service import small_job, start_api
 
 CHROMIUM = Path("/usr/bin/chromium")
 ROOT = Path(__file__).resolve().parent.parent
@@ -157,7 +158,7 @@ def test_submit_a_job_and_watch_it_live(page, api, tmp_path):
     assert page.locator(".colorbar-labels").first.text_content().startswith("−")
     page.screenshot(path=tmp_path / "job-gradient-3.png", full_page=True)
 
-    # downloads authenticate by URL (?access_token=) like the images and the event stream
+    # downloads authenticate by URL with the job's read token (?token=), like the images and the events
     link = page.locator("[data-testid=downloads] a", has_text="Latest checkpoint")
     response = page.request.get(link.evaluate("a => a.href"))
     assert response.status == 200 and len(response.body()) > 1000
@@ -257,11 +258,11 @@ def test_upload_a_scene_folder_and_a_target_photograph(page, api, tmp_path):
 
     folder = tmp_path / "my-scene"
     (folder / "meshes").mkdir(parents=True)
-    (folder / "scene.xml").write_text(SCENE)
-    (folder / "materials.xml").write_text(MATERIALS)
-    (folder / "meshes" / "quad.obj").write_text(QUAD)
+    (folder / "scene.xml").write_text(UPLOAD_XML)
+    (folder / "materials.xml").write_text(UPLOAD_MATERIALS)
+    (folder / "meshes" / "quad.obj").write_text(QUAD_OBJ)
     photo = tmp_path / "photo.png"
-    Image.fromarray(np.full((16, 16, 3), 120, np.uint8)).save(photo)
+    Image.fromarray(np.full((12, 16, 3), 120, np.uint8)).save(photo)          # the film is 16x12
 
     open_with_key(page, api, "/#/submit")
     page.get_by_test_id("scene-mode-upload").check()

@@ -38,7 +38,7 @@ def _naive_hashgrid(encoding, x):
 @pytest.mark.parametrize("log2_size, base, scale, levels", [(15, 8, 1.6, 8), (10, 4, 2.0, 6), (12, 16, 1.3, 4)])
 def test_hash_grid_matches_the_per_corner_definition(log2_size, base, scale, levels):
     from schemas.solver import HashGridConfig
-    from services.fields.encoding import HashGridEncoding
+    from services.solver.fields.encoding import HashGridEncoding
 
     torch.manual_seed(0)
     encoding = HashGridEncoding(HashGridConfig(log2_hashmap_size=log2_size, base_resolution=base,
@@ -51,7 +51,7 @@ def test_hash_grid_matches_the_per_corner_definition(log2_size, base, scale, lev
 
 def test_hash_grid_gradient_reaches_only_the_touched_rows():
     from schemas.solver import HashGridConfig
-    from services.fields.encoding import HashGridEncoding
+    from services.solver.fields.encoding import HashGridEncoding
 
     encoding = HashGridEncoding(HashGridConfig(n_levels=2, base_resolution=4, log2_hashmap_size=10))
     encoding(torch.full((1, 3), 0.3)).sum().backward()
@@ -60,7 +60,7 @@ def test_hash_grid_gradient_reaches_only_the_touched_rows():
 
 
 def test_spherical_harmonics_are_orthonormal():
-    from services.fields.encoding import SphericalHarmonicsEncoding
+    from services.solver.fields.encoding import SphericalHarmonicsEncoding
 
     torch.manual_seed(1)
     d = torch.nn.functional.normalize(torch.randn(400_000, 3), dim=-1)
@@ -71,8 +71,8 @@ def test_spherical_harmonics_are_orthonormal():
 
 def test_field_shapes_scale_and_normalisation():
     from schemas.solver import FieldConfig
-    from services.fields.field import NeuralField
-    from services.fields.query import FieldQuery
+    from services.solver.fields.field import NeuralField
+    from services.solver.fields.query import FieldQuery
 
     field = NeuralField(FieldConfig(), channels=6, box_min=[0, 0, 0], box_max=[555, 548, 559])
     q = FieldQuery(torch.rand(10, 3) * 555, torch.nn.functional.normalize(torch.randn(10, 3), dim=-1),
@@ -83,3 +83,42 @@ def test_field_shapes_scale_and_normalisation():
     with torch.no_grad():
         field.output_scale.fill_(1000.0)
     assert field(q).abs().mean() > 10 * NeuralField(FieldConfig(), 6, [0, 0, 0], [555, 548, 559])(q).abs().mean()
+
+
+def test_hash_grid_table_gradient_matches_autograd_of_the_definition():
+    """The hand-written backward of the blend (one index_add_) against autograd through the
+    per-corner definition."""
+    from schemas.solver import HashGridConfig
+    from services.solver.fields.encoding import HashGridEncoding
+
+    torch.manual_seed(1)
+    encoding = HashGridEncoding(HashGridConfig(log2_hashmap_size=10, base_resolution=4, per_level_scale=2.0,
+                                               n_levels=6))
+    with torch.no_grad():
+        encoding.table.normal_()
+    x, g = torch.rand(3000, 3), torch.randn(3000, encoding.output_dim)
+    (encoding(x) * g).sum().backward()
+    fast = encoding.table.grad.clone()
+    encoding.table.grad = None
+    (_naive_hashgrid(encoding, x) * g).sum().backward()
+    assert torch.allclose(fast, encoding.table.grad, atol=1e-4)
+
+
+def test_precomputed_inputs_survive_selection_and_give_the_same_values():
+    """A query whose encoding inputs were precomputed (a pool's) evaluates like a fresh one, and
+    a selection of it carries the precomputed rows along."""
+    from schemas.solver import FieldConfig
+    from services.solver.fields.field import NeuralField
+    from services.solver.fields.query import FieldQuery
+
+    torch.manual_seed(2)
+    field = NeuralField(FieldConfig(), 4, [-1, -1, -1], [1, 1, 1])
+    wo = torch.nn.functional.normalize(torch.randn(500, 3), dim=-1)
+    fresh = FieldQuery(torch.rand(500, 3) * 2 - 1, wo, wo.flip(-1))
+    pooled = field.precompute(FieldQuery(fresh.x, fresh.wo, fresh.n))
+    index = torch.randperm(500)[:123]
+    part = pooled.select(index)
+    assert len(part.cache) == 2
+    with torch.no_grad():
+        assert torch.allclose(field(part), field(fresh.select(index)), atol=1e-6)
+        assert torch.allclose(field(pooled), field(fresh), atol=1e-6)

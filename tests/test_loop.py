@@ -32,13 +32,12 @@ def small_job(method="direct", iterations=6, **extra):
     return job
 
 
-def _run(job, folder, **hooks):
+def _run(job, folder, **options):
+    """The job run in-process into ``folder``, as ``ndrf run`` does; returns its summary."""
     from schemas.job import JobSpec
-    from services.optimize.loop import InverseRenderingRun, RunHooks
-    from services.store.layout import JobFolder
+    from services.jobs.local import run_local
 
-    run = InverseRenderingRun(JobSpec.model_validate(job), JobFolder(folder), RunHooks(**hooks))
-    return run.execute()
+    return run_local(JobSpec.model_validate(job), folder, **options)
 
 
 def test_run_writes_the_documented_job_folder(mi, tmp_path):
@@ -50,7 +49,7 @@ def test_run_writes_the_documented_job_folder(mi, tmp_path):
     for k in range(6):
         it = tmp_path / "iterations" / f"{k:06d}"
         record = json.loads((it / "record.json").read_text())
-        assert set(record["seconds"]) == {"training", "rendering", "gradient"}
+        assert set(record["seconds"]) == {"training", "gradient", "images"}
         assert len(record["dz_dp"]) == 3 and np.isfinite(record["loss"])
         assert record["residual_primal"] is not None and record["residual_differential"] is not None
         assert np.load(it / "gradients.npy").shape == (3, 16, 16, 3)
@@ -80,18 +79,21 @@ def test_same_seed_same_run(mi, tmp_path):
     assert not np.allclose(c["final"], a["final"], rtol=1e-4, atol=0)
 
 
-def test_cancel_stops_at_an_iteration_boundary_and_keeps_artifacts(mi, tmp_path):
-    from services.store.layout import JobFolder
+def test_cancel_stops_between_training_steps_and_keeps_artifacts(mi, tmp_path):
+    from services.store.job import JobFiles
+    from services.store.local import FolderStore
 
     calls = {"n": 0}
 
     def should_stop():
         calls["n"] += 1
-        return "canceled" if calls["n"] > 2 else None
+        return "canceled" if calls["n"] > 14 else None   # polled before each iteration and each training step
 
-    summary = _run(small_job(), tmp_path, should_stop=should_stop)
-    assert summary["status"] == "canceled" and summary["iterations"] == 2
-    assert JobFolder(tmp_path).iterations() == [0, 1]
+    summary = _run(small_job("ndrf-rhs"), tmp_path / "job", should_stop=should_stop)
+    assert summary["status"] == "canceled"
+    assert 1 <= summary["iterations"] < 6                                # inside the run, not at its end
+    done = JobFiles(FolderStore(tmp_path), "job").iterations()
+    assert done == list(range(summary["iterations"]))                    # what was done is kept
 
 
 def test_a_job_that_cannot_run_fails_with_the_field_named(mi, tmp_path):
@@ -116,7 +118,7 @@ def test_sigkill_mid_run_resumes_from_the_last_checkpoint(mi, tmp_path):
     events = out / "events.jsonl"
     while time.time() < deadline:
         text = events.read_text() if events.is_file() else ""
-        checkpoints = [json.loads(l)["iteration"] for l in text.splitlines() if '"checkpoint"' in l]
+        checkpoints = [json.loads(line)["iteration"] for line in text.splitlines() if '"checkpoint"' in line]
         if checkpoints and checkpoints[-1] >= 4:
             break
         time.sleep(0.05)
@@ -127,9 +129,11 @@ def test_sigkill_mid_run_resumes_from_the_last_checkpoint(mi, tmp_path):
     resumed = subprocess.run([sys.executable, "-m", "cli.main", "run", str(path), "--out", str(out), "--resume",
                               "--quiet"], capture_output=True, text=True, timeout=600)
     assert resumed.returncode == 0, resumed.stderr
-    lines = [json.loads(l) for l in (out / "events.jsonl").read_text().splitlines()]
+    lines = [json.loads(line) for line in (out / "events.jsonl").read_text().splitlines()]
     resumed_at = [e["iteration"] for e in lines if e["type"] == "resumed"]
     assert resumed_at and resumed_at[0] >= 4                  # from the checkpoint, not from iteration 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "succeeded"
-    assert np.allclose(summary["final"], reference["final"], atol=1e-3)
+    # the resumed run draws the samples the uninterrupted one drew: equal up to float rounding of
+    # kernels traced anew in another process (see test_same_seed_same_run)
+    np.testing.assert_allclose(summary["final"], reference["final"], rtol=1e-6, atol=1e-9)

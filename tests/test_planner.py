@@ -5,8 +5,15 @@ from __future__ import annotations
 import pytest
 
 from schemas.job import EffectOverrides
-from services.scene.facts import ScalarFacts, SceneFacts
-from services.scene.planner import plan_effects
+from schemas.methods import Method
+from services.solver.estimators.methods import method_class
+from services.solver.scene.facts import ScalarFacts, SceneFacts
+from services.solver.scene.planner import plan_effects as plan_for
+
+
+def plan_effects(facts, method, overrides=None, **options):
+    """The plan for a method, with the fields the registry says it can use."""
+    return plan_for(facts, method, method_class(method).uses, overrides, **options)
 
 
 def facts(*scalars, hits=1000, delta=(), counts=(65536,), unfinished=0):
@@ -51,12 +58,14 @@ def test_without_interreflection_one_bounce_is_exact():
     assert "exact" in plan.differential_field.reason
 
 
-@pytest.mark.parametrize("method, radiance, differential", [
-    ("ndrf-lhs", True, True), ("ndrf-rhs", True, True), ("radiance-cache", True, False),
-    ("direct", False, False), ("prb", False, False)])
-def test_fields_only_for_methods_that_use_them(method, radiance, differential):
+EXPECTED_FIELDS = {Method.NDRF_LHS: (True, True), Method.NDRF_RHS: (True, True), Method.RADIANCE_CACHE: (True, False),
+                   Method.DIRECT: (False, False), Method.PRB: (False, False)}
+
+
+@pytest.mark.parametrize("method", list(Method))
+def test_fields_only_for_methods_that_use_them(method):
     plan = plan_effects(facts(albedo(0)), method)
-    assert (plan.radiance_field.value, plan.differential_field.value) == (radiance, differential)
+    assert (plan.radiance_field.value, plan.differential_field.value) == EXPECTED_FIELDS[method]
 
 
 def test_unreachable_scalars_are_dropped_with_a_reason():

@@ -15,21 +15,22 @@ SMALL = TrainingConfig(residual_points=1024, incident_samples=4)
 
 def gradient(mi, scene_dict_or_name, keys, method, overrides=None, steps=0, resolution=(24, 24), spp=8):
     """Plan (with overrides), train what the plan asks for, and return (plan, images)."""
-    from services.estimators.context import Problem
-    from services.estimators.methods import make_method
-    from services.optimize.gradient import fields_of, make_trainer
-    from services.scene.facts import probe_scene
-    from services.scene.load import load_scene
-    from services.scene.params import ParameterSet
-    from services.scene.planner import plan_effects
+    from services.solver.estimators.methods import make_method, method_class
+    from services.solver.estimators.problem import Problem
+    from services.solver.estimators.training import fields_of, trainer_for
+    from services.solver.scene.facts import probe_scene
+    from services.solver.scene.load import load_scene
+    from services.solver.scene.params import ParameterSet
+    from services.solver.scene.planner import plan_effects
 
     scene = (load_scene(builtin=scene_dict_or_name, resolution=resolution) if isinstance(scene_dict_or_name, str)
              else load_scene(mitsuba_dict=scene_dict_or_name, resolution=resolution))
     problem = Problem(scene, ParameterSet(scene.params, keys))
-    plan = plan_effects(probe_scene(scene, problem.parameters, seed=1), method, overrides or EffectOverrides())
+    plan = plan_effects(probe_scene(scene, problem.parameters, seed=1), method, method_class(method).uses,
+                        overrides or EffectOverrides())
     problem.apply_plan(plan)
-    estimator = make_method(method, plan=plan)
-    trainer = make_trainer(problem, estimator, SMALL, seed=0)
+    estimator = make_method(method, plan)
+    trainer = trainer_for(problem, estimator, SMALL, seed=0)
     if trainer is not None:
         trainer.train(steps)
     return plan, trainer, estimator.images(problem, fields_of(trainer), spp=spp, seed=5)
@@ -56,11 +57,17 @@ def test_emitter_parameters_skip_the_radiance_field_and_the_bsdf_term(mi):
     np.testing.assert_allclose(planned, forced, rtol=1e-4, atol=1e-6)
 
 
-def test_bsdf_parameters_skip_the_emission_term(mi):
-    keys = ["red.reflectance.value"]
-    _, _, planned = gradient(mi, "cornell-box", keys, "direct")
-    _, _, forced = gradient(mi, "cornell-box", keys, "direct", EffectOverrides(emission_term="on"))
-    np.testing.assert_allclose(planned, forced, atol=1e-7)
+def test_the_emission_term_is_skipped_exactly_when_no_emitter_parameter_is_optimized(mi):
+    bsdf = ["red.reflectance.value"]
+    plan, _, planned = gradient(mi, "cornell-box", bsdf, "direct")
+    assert not plan.emission_term.value                                   # the decision itself
+    _, _, forced = gradient(mi, "cornell-box", bsdf, "direct", EffectOverrides(emission_term="on"))
+    np.testing.assert_allclose(planned, forced, atol=1e-7)                # skipping it loses nothing
+    emitter = ["light.emitter.radiance.value"]
+    plan, _, needed = gradient(mi, "cornell-box", emitter, "direct")
+    assert plan.emission_term.value
+    _, _, dropped = gradient(mi, "cornell-box", emitter, "direct", EffectOverrides(emission_term="off"))
+    assert np.abs(needed).sum() > 0 and np.all(dropped == 0)              # where it is needed, it is everything
 
 
 def test_delta_depth_beyond_what_is_needed_changes_nothing_below_it_does(mi):
@@ -88,19 +95,17 @@ def test_forcing_off_the_needed_differential_field_loses_indirect_gradients(mi):
 
 
 def test_unreachable_parameter_is_dropped_and_really_has_zero_gradient(mi):
-    from services.estimators.context import Problem
-    from services.estimators.gradients import Fields
-    from services.estimators.methods import make_method
-    from services.scene.load import load_scene
-    from services.scene.params import ParameterSet
-    from tests.scenes import closet_box
+    from services.solver.estimators.methods import Fields, make_method
+    from services.solver.estimators.problem import Problem
+    from services.solver.scene.load import load_scene
+    from services.solver.scene.params import ParameterSet
 
     keys = ["red.reflectance.value", "hidden-paint.reflectance.value"]
-    plan, trainer, planned = gradient(mi, closet_box(), keys, "ndrf-lhs", steps=5)
+    plan, trainer, planned = gradient(mi, "closet-box", keys, "ndrf-lhs", steps=5)
     assert [s.active for s in plan.scalars] == [True] * 3 + [False] * 3
     assert trainer.differential.channels == 3                      # one channel per red-wall scalar
     assert np.all(planned[3:] == 0)
-    scene = load_scene(mitsuba_dict=closet_box(), resolution=(24, 24))
+    scene = load_scene(builtin="closet-box", resolution=(24, 24))
     reference = make_method("prb").images(Problem(scene, ParameterSet(scene.params, keys)), Fields(), spp=64, seed=3)
     assert np.all(reference[3:] == 0) and np.abs(reference[:3]).sum() > 0
 

@@ -15,12 +15,13 @@ import pytest
 
 @pytest.mark.parametrize("key, component", [("red.reflectance.value", 0), ("light.emitter.radiance.value", 1)])
 def test_prb_loss_gradient_matches_central_differences(mi, key, component):
-    from services.estimators.context import Problem
-    from services.estimators.gradients import Fields
-    from services.estimators.reference import Prb, render
-    from services.optimize.losses import image_loss
-    from services.scene.load import load_scene
-    from services.scene.params import ParameterSet
+    from services.solver.estimators.methods import Fields
+    from services.solver.estimators.methods.prb import Prb
+    from services.solver.estimators.problem import Problem
+    from services.solver.estimators.render import render
+    from services.solver.optimize.losses import image_loss
+    from services.solver.scene.load import load_scene
+    from services.solver.scene.params import ParameterSet
 
     scene = load_scene(builtin="cornell-box", resolution=(32, 32))
     params = ParameterSet(scene.params, [key])

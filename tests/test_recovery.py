@@ -30,10 +30,9 @@ def _example(name, **overrides):
 
 def _run(job, folder):
     from schemas.job import JobSpec
-    from services.optimize.loop import InverseRenderingRun
-    from services.store.layout import JobFolder
+    from services.jobs.local import run_local
 
-    summary = InverseRenderingRun(JobSpec.model_validate(job), JobFolder(folder)).execute()
+    summary = run_local(JobSpec.model_validate(job), folder)
     assert summary["status"] == "succeeded", summary["error"]
     return np.array(summary["final"]), np.array(summary["target"])
 

@@ -13,13 +13,13 @@ import pytest
 
 
 def _load(mi, scene_dict):
-    from services.scene.load import load_scene
+    from services.solver.scene.load import load_scene
 
     return load_scene(mitsuba_dict=scene_dict)
 
 
 def test_residual_domain_excludes_emitters_and_mirrors(mi):
-    from services.sampling.surface import SurfaceSampler
+    from services.solver.sampling.surface import SurfaceSampler
     from tests.scenes import area_probe
 
     sampler = SurfaceSampler(_load(mi, area_probe()).scene)
@@ -32,8 +32,8 @@ def test_area_sampling_integrates_height_and_cosine_exactly(mi):
     sampler's own pdf p(x, ω_o)."""
     import drjit as dr
 
-    from services.sampling.camera import make_sampler
-    from services.sampling.surface import SurfaceSampler
+    from services.solver.sampling.camera import make_sampler
+    from services.solver.sampling.surface import SurfaceSampler
     from tests.scenes import area_probe
 
     surface = SurfaceSampler(_load(mi, area_probe()).scene)
@@ -54,9 +54,9 @@ def test_mis_incident_integral_under_a_constant_sky(mi):
     """Under a constant sky of radiance 1, a diffuse plane reflects exactly its albedo ρ, and
     ∂L_r/∂ρ_c = 1 in channel c. The MIS estimate (emitter + BSDF sampling) of Eq. 9 and its
     forward-mode derivative must reproduce both."""
-    from services.estimators.context import Problem
-    from services.estimators.residuals import differential_rhs, draw_batch, primal_rhs
-    from services.scene.params import ParameterSet
+    from services.solver.estimators.problem import Problem
+    from services.solver.estimators.residuals import differential_rhs, draw_batch, primal_rhs
+    from services.solver.scene.params import ParameterSet
     from tests.scenes import sky_plane
 
     albedo = np.array([0.2, 0.5, 0.8])

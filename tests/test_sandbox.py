@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import base64
+import io
+import struct
+import zlib
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from services.scene.sandbox import (
+from services.uploads.sandbox import (
     MAX_INCLUDE_EXPANSIONS,
-    SandboxError,
+    InvalidJob,
     UploadLimits,
     check_scene_upload,
     pack_scene,
@@ -70,7 +74,7 @@ def test_scene_references_lists_includes_and_files_in_document_order():
 
 
 def test_error_names_field_and_message():
-    error = SandboxError("scene.xml", "bad")
+    error = InvalidJob("scene.xml", "bad")
     assert (error.field, error.message, str(error)) == ("scene.xml", "bad", "scene.xml: bad")
     assert isinstance(error, ValueError)
 
@@ -162,7 +166,7 @@ MALICIOUS = {
 
 @pytest.mark.parametrize("xml, files, field, fragment", list(MALICIOUS.values()), ids=list(MALICIOUS))
 def test_malicious_uploads_are_refused(xml, files, field, fragment):
-    with pytest.raises(SandboxError) as caught:
+    with pytest.raises(InvalidJob) as caught:
         check_scene_upload(xml, files)
     assert caught.value.field.startswith(field)
     assert fragment in caught.value.message
@@ -182,7 +186,7 @@ LIMITS = UploadLimits(max_files=3, max_file_bytes=64, max_total_bytes=len(MAIN) 
 def test_limits_are_enforced(xml, extra, field, fragment):
     assert check_scene_upload(MAIN, valid_files(**SMALL_FILES), LIMITS)  # fails only because of `extra`
     files = valid_files(**SMALL_FILES, **extra)
-    with pytest.raises(SandboxError) as caught:
+    with pytest.raises(InvalidJob) as caught:
         check_scene_upload(xml, files, LIMITS)
     assert caught.value.field == field
     assert fragment in caught.value.message
@@ -216,3 +220,216 @@ def test_pack_scene_reports_bad_references(tmp_path, tree, error, fragment):
     (tmp_path / "outside.obj").write_bytes(OBJ_QUAD)
     with pytest.raises(error, match=fragment.replace("(", r"\(")):
         pack_scene(tmp_path / "scene" / "scene.xml")
+
+
+# ------------------------------------------------------------------ work caps of the expanded scene
+
+DEFAULTS = UploadLimits()
+
+
+def ply_mesh(vertices: int, faces: int, header_vertices: int | None = None) -> bytes:
+    """A binary little-endian PLY of ``vertices`` points and ``faces`` triangles (0, 1, 2)."""
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {header_vertices or vertices}\n"
+              "property float x\nproperty float y\nproperty float z\n"
+              f"element face {faces}\nproperty list uchar int vertex_indices\nend_header\n").encode()
+    rows = np.zeros(faces, dtype=[("n", "u1"), ("i", "<i4", 3)])
+    rows["n"], rows["i"] = 3, (0, 1, 2)
+    return header + np.zeros((vertices, 3), "<f4").tobytes() + rows.tobytes()
+
+
+def ply_shape(filename: str = "m.ply") -> str:
+    return f'<shape type="ply"><string name="filename" value="{filename}"/></shape>'
+
+
+def refused(xml: str, files: dict[str, str | bytes], limits: UploadLimits = DEFAULTS) -> InvalidJob:
+    with pytest.raises(InvalidJob) as caught:
+        check_scene_upload(xml, {path: b64(data) for path, data in files.items()}, limits)
+    return caught.value
+
+
+def test_deep_nesting_is_refused_while_parsing():
+    """The issue's attack: 20,000 nested twosided BSDFs (580 KB) overflow Mitsuba's recursive parser."""
+    nested = '<bsdf type="twosided">' * 20_000 + "</bsdf>" * 20_000
+    assert 500_000 < len(scene(nested)) < 4 << 20
+    error = refused(scene(nested), {})
+    assert (error.field, error.message) == ("scene.xml", "elements are nested deeper than 32 levels (max_xml_depth)")
+    error = refused(scene('<include filename="deep.xml"/>'), {"deep.xml": scene(nested)})
+    assert error.field == "scene.files[deep.xml]" and "nested deeper than 32 levels" in error.message
+
+
+def test_depth_counts_through_includes():
+    """Each document nests 20 levels; the fragment's content sits 19 levels down in the main one."""
+    deep = '<bsdf type="twosided">' * 18
+    main = scene(deep + '<include filename="f.xml"/>' + "</bsdf>" * 18)
+    fragment = scene(deep + "</bsdf>" * 18)
+    assert check_scene_upload(main, {"f.xml": b64(fragment)}, UploadLimits(max_xml_depth=38))
+    error = refused(main, {"f.xml": fragment})
+    assert error.field == "scene.xml"
+    assert error.message == "<bsdf>: nested elements and <ref> chains reach 33 levels in the expanded scene; " \
+                            "at most 32 are allowed (max_xml_depth)"
+
+
+def test_reference_chains_count_as_depth():
+    """Mitsuba instantiates referenced objects recursively: 100 BSDFs each wrapping the one
+    before by <ref> are as deep as 100 nested ones."""
+    chain = '<bsdf type="diffuse" id="b0"/>' + "".join(
+        f'<bsdf type="twosided" id="b{i}"><ref id="b{i - 1}"/></bsdf>' for i in range(1, 100))
+    error = refused(scene(chain), {})
+    assert error.field == "scene.xml" and "<ref> chains reach 33 levels" in error.message
+    assert check_scene_upload(scene(chain[:chain.index('id="b10"') - 22]), {}) == {}  # 10 links are fine
+
+
+def test_reference_cycles_are_refused():
+    cycle = '<bsdf type="twosided" id="a"><ref id="b"/></bsdf><bsdf type="twosided" id="b"><ref id="a"/></bsdf>'
+    error = refused(scene(cycle), {})
+    assert (error.field, error.message) == ("scene.xml", "reference cycle through id 'a'")
+
+
+def test_a_fragment_counts_every_time_it_is_included():
+    """The issue's attack: one fragment included 1,000 times."""
+    fragment = scene('<bsdf type="diffuse">' + '<float name="x" value="1"/>' * 148 + "</bsdf>")
+    main = scene('<include filename="f.xml"/>' * 1000)
+    error = refused(main, {"f.xml": fragment})
+    assert error.field == "scene.files[f.xml]"
+    assert error.message == "the expanded scene has 151001 XML elements (150000 from this document, included 1000 " \
+                            "times); at most 100000 are allowed (max_xml_elements)"
+    assert check_scene_upload(scene('<include filename="f.xml"/>' * 600), {"f.xml": b64(fragment)})
+
+
+def test_expanded_xml_bytes_are_capped():
+    fragment = scene(f'<bsdf type="diffuse"><string name="note" value="{"x" * 20_000}"/></bsdf>')
+    error = refused(scene('<include filename="f.xml"/>' * 1000), {"f.xml": fragment})
+    assert error.field == "scene.files[f.xml]"
+    assert f"({len(fragment) * 1000} from this document, included 1000 times); at most {16 << 20} are allowed " \
+           "(max_expanded_xml_bytes)" in error.message
+
+
+def test_one_mesh_referenced_50000_times_is_refused():
+    """The issue's attack, through a fragment of 50 shapes included 1,000 times, and directly."""
+    files = {"m.ply": ply_mesh(3, 1), "f.xml": scene(ply_shape() * 50)}
+    error = refused(scene('<include filename="f.xml"/>' * 1000), files)
+    assert error.field == "scene.files[f.xml]"
+    assert error.message == "the expanded scene has 50000 <shape> elements (50000 from this document, included " \
+                            "1000 times); at most 10000 are allowed (max_shapes)"
+    error = refused(scene(ply_shape() * 50_000), files)
+    assert (error.field, error.message) == ("scene.xml", "has more than 100000 XML elements (max_xml_elements)")
+
+
+def test_referenced_bytes_count_per_reference(monkeypatch):
+    """A 1.1 MB mesh named by 300 shapes makes Mitsuba read 342 MB; it is checked once."""
+    from services.uploads import sandbox
+
+    checked = []
+    real = sandbox.check_mesh
+    monkeypatch.setattr(sandbox, "check_mesh", lambda *args, **kw: checked.append(args[0]) or real(*args, **kw))
+    mesh = ply_mesh(30_000, 60_000)
+    error = refused(scene(ply_shape("meshes/m.ply") * 300), {"meshes/m.ply": mesh})
+    assert error.field == "scene.files[meshes/m.ply]"
+    assert error.message == f"is referenced 300 times ({300 * len(mesh)} bytes of files); the expanded scene " \
+                            f"references {300 * len(mesh)} bytes of files in total; at most {256 << 20} are allowed " \
+                            "(max_referenced_bytes)"
+    assert checked == ["meshes/m.ply"]
+    assert check_scene_upload(scene(ply_shape("meshes/m.ply") * 200), {"meshes/m.ply": b64(mesh)})
+
+
+def test_mesh_work_is_summed_per_reference():
+    files = {"m.ply": ply_mesh(4, 2), "f.xml": scene(ply_shape() * 3)}
+    limits = UploadLimits(max_scene_faces=10)
+    assert check_scene_upload(scene('<include filename="f.xml"/>'), {p: b64(d) for p, d in files.items()}, limits)
+    error = refused(scene('<include filename="f.xml"/>' * 2), files, limits)
+    assert error.field == "scene.files[m.ply]"
+    assert error.message == ("is referenced 6 times (12 mesh faces); the expanded scene references 12 mesh faces in "
+                             "total; at most 10 are allowed (max_scene_faces)")
+
+
+def test_ply_count_overflow_is_refused_through_the_scene():
+    """The issue's 49 KB attack: `element vertex 4294967297` in an uploaded m.ply."""
+    mesh = ply_mesh(4000, 1, header_vertices=4294967297)
+    error = refused(scene(ply_shape("meshes/m.ply")), {"meshes/m.ply": mesh})
+    assert (error.field, error.message) == ("scene.files[meshes/m.ply]",
+                                            "declares 4294967297 vertices; counts must be below 2^31")
+
+
+def test_meshes_are_checked_as_the_shape_type_reads_them():
+    shape = '<shape type="ply"><string name="filename" value="meshes/quad.obj"/></shape>'
+    error = refused(scene(shape), {"meshes/quad.obj": OBJ_QUAD})
+    assert (error.field, error.message) == ("scene.files[meshes/quad.obj]",
+                                            "is not a PLY file: it must start with a 'ply' line")
+
+
+def serialized_mesh(shapes: int) -> bytes:
+    """Mitsuba's serialized format: per shape uint16 0x041C, uint16 4, a zlib stream (flags, name,
+    uint64 counts, float32 positions, uint32 triangles); then the offsets and the shape count."""
+    data, offsets = b"", []
+    for _ in range(shapes):
+        payload = struct.pack("<I", 0x1000) + b"tri\0" + struct.pack("<QQ", 3, 1) + bytes(36) \
+            + struct.pack("<3I", 0, 1, 2)
+        offsets.append(len(data))
+        data += struct.pack("<HH", 0x041C, 4) + zlib.compress(payload)
+    return data + struct.pack(f"<{shapes}QI", *offsets, shapes)
+
+
+@pytest.mark.parametrize("index, fragment", [
+    ('<integer name="shape_index" value="2"/>', "shape_index 2 is out of range; 'm.serialized' holds 2 shapes"),
+    ('<integer name="shape_index" value="$i"/>', "shape_index must be a literal non-negative integer, not '$i'"),
+], ids=["out of range", "substituted"])
+def test_serialized_shape_index_is_checked(index, fragment):
+    shape = f'<shape type="serialized"><string name="filename" value="m.serialized"/>{index}</shape>'
+    files = {"m.serialized": serialized_mesh(2)}
+    valid = shape.replace(index, '<integer name="shape_index" value="1"/>')
+    assert check_scene_upload(scene(valid), {p: b64(d) for p, d in files.items()})
+    error = refused(scene(shape), files)
+    assert error.field == "scene.xml" and fragment in error.message
+
+
+def png(width: int, height: int) -> bytes:
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.new("L", (width, height)).save(buffer, format="PNG", optimize=True)
+    return buffer.getvalue()
+
+
+def test_textures_are_capped_from_their_headers():
+    """A 3000 x 3000 PNG of ~9 KB as a bitmap texture or environment map."""
+    texture = '<texture type="bitmap"><string name="filename" value="t.png"/></texture>'
+    envmap = '<emitter type="envmap"><string name="filename" value="t.png"/></emitter>'
+    files = {"t.png": png(3000, 3000)}
+    for element in (texture, envmap):
+        error = refused(scene(element), files, UploadLimits(max_texture_pixels=4 << 20))
+        assert error.field == "scene.files[t.png]"
+        assert error.message == ("is a 3000 x 3000 PNG image (9000000 pixels); at most 4194304 pixels are allowed "
+                                 "(max_texture_pixels)")
+    error = refused(scene(texture * 8), files)
+    assert error.field == "scene.files[t.png]" and "references 72000000 texture pixels in total; at most " \
+                                                   f"{64 << 20} are allowed (max_scene_texture_pixels)" in error.message
+    error = refused(scene(texture), {"t.png": b"GIF89a" + bytes(20)})
+    assert error.field == "scene.files[t.png]" and "unknown image format" in error.message
+
+
+def test_valid_scene_with_every_checked_kind_of_file():
+    xml = scene('<include filename="f.xml"/>', ply_shape("meshes/m.ply"),
+                '<shape type="serialized"><string name="filename" value="meshes/s.serialized"/>'
+                '<integer name="shape_index" value="1"/></shape>',
+                '<bsdf type="diffuse"><texture type="bitmap" name="reflectance">'
+                '<string name="filename" value="textures/t.png"/></texture></bsdf>')
+    files = {"f.xml": scene(mesh("meshes/quad.obj")), "meshes/quad.obj": OBJ_QUAD, "meshes/m.ply": ply_mesh(4, 2),
+             "meshes/s.serialized": serialized_mesh(2), "textures/t.png": png(16, 8)}
+    assert set(check_scene_upload(xml, {p: b64(d) for p, d in files.items()})) == set(files)
+
+
+LONG_NAME = "é" * 150 + ".obj"  # 154 characters, 304 bytes in UTF-8
+
+
+@pytest.mark.parametrize("xml, files, field, fragment", [
+    (MAIN, {LONG_NAME: b""}, f"scene.files[{LONG_NAME}]",
+     ("the name 'éééééééééééééééééééééééééééééééééééééééé'... (154 characters) has 304 bytes in UTF-8; at most 255 "
+      "bytes are allowed per file or folder name")),
+    (MAIN, {"meshes/" + LONG_NAME: b""}, f"scene.files[meshes/{LONG_NAME}]", "has 304 bytes in UTF-8"),
+    (scene(mesh(LONG_NAME)), {}, "scene.xml", "has 304 bytes in UTF-8; at most 255 bytes"),
+    (MAIN, {"a\udc80.obj": b""}, "scene.files[a\udc80.obj]", "is not valid Unicode (it contains a lone surrogate)"),
+    (scene('<bsdf type="diffuse" id="\udc80"/>'), {}, "scene.xml", "is not valid Unicode text"),
+], ids=["file key", "folder file", "xml reference", "surrogate key", "surrogate xml"])
+def test_names_must_fit_the_filesystem(xml, files, field, fragment):
+    error = refused(xml, files)
+    assert error.field == field and fragment in error.message

@@ -9,40 +9,8 @@ import time
 import urllib.request
 
 import numpy as np
-import pytest
 
-from tests.service import Process, RedisServer, small_job, start_api, wait_until
-
-
-@pytest.fixture()
-def redis_server():
-    server = RedisServer().start()
-    yield server
-    server.stop()
-
-
-@pytest.fixture()
-def stack(tmp_path, redis_server):
-    """API + workers sharing one Redis and one store; ``add_worker()`` starts another worker."""
-    env = {"REDIS_URL": redis_server.url, "NDRF_STORE": str(tmp_path / "store"), "NDRF_LEASE_SECONDS": "3"}
-    processes = []
-
-    class Stack:
-        def __init__(self):
-            self.env = env
-            api_proc, self.api = start_api(tmp_path, env)
-            processes.append(api_proc)
-            self.workers = []
-
-        def add_worker(self, name, **extra_env):
-            worker = Process(["-v", "worker", "--name", name], {**env, **extra_env}, tmp_path / f"{name}.log")
-            processes.append(worker)
-            self.workers.append(worker)
-            return worker
-
-    yield Stack()
-    for proc in processes:      # no graceful shutdown here: a worker would first finish its iteration
-        proc.kill(signal.SIGKILL)
+from tests.service import small_job, start_api, wait_until
 
 
 def read_sse(api, job_id, timeout=120.0, last_event_id=None):
@@ -67,8 +35,8 @@ def read_sse(api, job_id, timeout=120.0, last_event_id=None):
     return events
 
 
-def test_embedded_submit_stream_succeed_and_fetch_images(tmp_path):
-    proc, api = start_api(tmp_path, {"NDRF_STORE": str(tmp_path / "store")})
+def test_embedded_submit_stream_succeed_and_fetch_images(tmp_path, store_env):
+    proc, api = start_api(tmp_path, store_env)
     try:
         status, headers, accepted = api.json("POST", "/v1/jobs", small_job())
         assert status == 202 and headers["location"] == f"/v1/jobs/{accepted['id']}"
@@ -137,8 +105,7 @@ def test_two_workers_share_the_queue(stack):
     ids = [api.json("POST", "/v1/jobs", small_job(iterations=30, seed=s))[2]["id"] for s in (1, 2)]
     for job_id in ids:
         assert api.wait_status(job_id, {"succeeded", "failed"}, 240)["status"] == "succeeded"
-    store = stack.env["NDRF_STORE"]
-    workers = {json.load(open(f"{store}/{job_id}/record.json"))["worker"] for job_id in ids}
+    workers = {stack.store.get_json(f"{job_id}/record.json")["worker"] for job_id in ids}
     assert workers == {"w1", "w2"}
 
 
@@ -147,15 +114,17 @@ def test_sigkill_of_a_worker_hands_the_job_to_another_from_its_checkpoint(stack)
     first = stack.add_worker("doomed")
     _, _, accepted = api.json("POST", "/v1/jobs", small_job(iterations=40))
     job_id = accepted["id"]
-    wait_until(lambda: (api.json("GET", f"/v1/jobs/{job_id}")[2].get("iteration") or 0) >= 3, 120, 0.1,
+    wait_until(lambda: (api.json("GET", f"/v1/jobs/{job_id}")[2].get("iteration") or 0) >= 3, 180, 0.1,
                what="three iterations")
     first.kill(signal.SIGKILL)
     killed_at = time.monotonic()
     stack.add_worker("survivor")
-    job = api.wait_status(job_id, {"succeeded", "failed"}, 120)
-    assert job["status"] == "succeeded" and time.monotonic() - killed_at < 120
-    assert job["attempts"] == 2
-    events = [json.loads(line) for line in open(f"{stack.env['NDRF_STORE']}/{job_id}/events.jsonl")]
+    wait_until(lambda: api.json("GET", f"/v1/jobs/{job_id}")[2]["attempts"] == 2, 120, 0.1, what="the takeover")
+    took_over = time.monotonic() - killed_at
+    job = api.wait_status(job_id, {"succeeded", "failed"}, 300)
+    assert job["status"] == "succeeded" and job["attempts"] == 2
+    print(f"takeover {took_over:.1f} s after the SIGKILL (lease 3 s)")
+    events = stack.store.read_events(f"{job_id}/")[0]
     resumed = [e for e in events if e["type"] == "resumed"]
     assert resumed and resumed[0]["iteration"] >= 3 and resumed[0]["attempt"].startswith("survivor")
     after = events[events.index(resumed[0]):]
@@ -168,8 +137,12 @@ def test_a_job_that_keeps_killing_its_worker_fails_after_max_attempts(stack):
     job_id = accepted["id"]
     for attempt in range(2):
         worker = stack.add_worker(f"victim{attempt}", NDRF_MAX_ATTEMPTS="2")
-        wait_until(lambda: api.json("GET", f"/v1/jobs/{job_id}")[2]["attempts"] == attempt + 1
-                   and api.json("GET", f"/v1/jobs/{job_id}")[2]["status"] == "running", 120, 0.1, what="running")
+
+        def running(expected=attempt + 1):
+            job = api.json("GET", f"/v1/jobs/{job_id}")[2]
+            return job["attempts"] == expected and job["status"] == "running"
+
+        wait_until(running, 120, 0.1, what="running")
         worker.kill(signal.SIGKILL)
     stack.add_worker("judge", NDRF_MAX_ATTEMPTS="2")
     job = api.wait_status(job_id, {"failed"}, 60)
@@ -188,17 +161,3 @@ def test_redis_restart_without_persistence_the_job_still_finishes(stack, redis_s
     redis_server.start()                     # same port, empty: the queue entry and the lease are gone
     job = api.wait_status(job_id, {"succeeded", "failed"}, 180)
     assert job["status"] == "succeeded", job
-
-
-def test_api_keys_protect_every_v1_route(tmp_path):
-    proc, api = start_api(tmp_path, {"NDRF_STORE": str(tmp_path / "store"), "NDRF_API_KEYS": "s3cret,other"})
-    try:
-        api.key = None
-        status, headers, problem = api.json("GET", "/v1/jobs")
-        assert status == 401 and problem["status"] == 401 and "bearer" in headers["www-authenticate"].lower()
-        assert api.json("GET", "/v1/jobs", headers={"Authorization": "Bearer wrong"})[0] == 401
-        assert api.json("GET", "/v1/jobs", headers={"Authorization": "Bearer other"})[0] == 200
-        assert api.json("GET", "/v1/scenes?access_token=s3cret")[0] == 200
-        assert api.request("GET", "/healthz")[0] == 200            # health stays open for probes
-    finally:
-        proc.kill(signal.SIGTERM)

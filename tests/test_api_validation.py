@@ -10,7 +10,11 @@ import signal
 import numpy as np
 import pytest
 
-from tests.service import MATERIALS, QUAD, SCENE, small_job, start_api
+from tests.scenes import QUAD_OBJ as QUAD
+from tests.scenes import SELF_CONTAINED_XML
+from tests.scenes import UPLOAD_MATERIALS as MATERIALS
+from tests.scenes import UPLOAD_XML as SCENE
+from tests.service import small_job, start_api
 
 CAPS = {"NDRF_MAX_UPLOAD_BYTES": "400000", "NDRF_MAX_RESOLUTION": "128", "NDRF_MAX_SPP": "256",
         "NDRF_MAX_ITERATIONS": "100", "NDRF_MAX_PARAMETERS": "6", "NDRF_MAX_MESH_BYTES": "20000"}
@@ -43,7 +47,7 @@ def api(tmp_path_factory):
     proc.kill(signal.SIGKILL)
 
 
-def expect_problem(api, job, status, field_fragment, message_fragment=""):
+def expect_problem(api, job, status, field_fragment, message_fragment):
     code, headers, problem = api.json("POST", "/v1/jobs", job)
     assert code == status, problem
     assert headers["content-type"] == "application/problem+json"
@@ -62,10 +66,10 @@ def test_a_valid_uploaded_scene_runs(api):
 @pytest.mark.parametrize("xml, files, field, message", [
     (SCENE.replace('filename="materials.xml"', 'filename="/etc/passwd"'), None, "scene.xml", "relative"),
     (SCENE.replace('filename="materials.xml"', 'filename="../../etc/passwd"'), None, "scene.xml", ".."),
-    (SCENE.replace('meshes/quad.obj', '/etc/passwd'), None, "scene.xml", ""),
+    (SCENE.replace('meshes/quad.obj', '/etc/passwd'), None, "scene.xml", "relative to the scene"),
     (SCENE.replace("<include", '<path value="/etc"/><include'), None, "scene.xml", "path"),
     (SCENE, {"materials.xml": b64(MATERIALS), "../meshes/quad.obj": b64(QUAD)}, "scene.files", ".."),
-    (SCENE, {"materials.xml": b64(MATERIALS), "/meshes/quad.obj": b64(QUAD)}, "scene.files", ""),
+    (SCENE, {"materials.xml": b64(MATERIALS), "/meshes/quad.obj": b64(QUAD)}, "scene.files", "no leading '/'"),
     (SCENE, {"materials.xml": b64(MATERIALS)}, "scene.xml", "not among the uploaded files"),
     ('<?xml version="1.0"?><!DOCTYPE s [<!ENTITY x SYSTEM "file:///etc/passwd">]><scene>&x;</scene>', None,
      "scene.xml", "DTD"),
@@ -74,10 +78,26 @@ def test_malicious_scenes_are_refused(api, xml, files, field, message):
     expect_problem(api, xml_job(xml, files), 422, field, message)
 
 
-def test_oversized_body_is_413(api):
-    code, headers, problem = api.json("POST", "/v1/jobs", xml_job(files={"big.bin": b64(b"x" * 500_000)}))
-    assert code == 413 and headers["content-type"] == "application/problem+json"
-    assert "NDRF_MAX_UPLOAD_BYTES" in problem["detail"]
+def test_oversized_body_is_413_before_it_is_read(api):
+    """The declared length is over the cap: the answer comes before the body is sent (a client
+    that keeps sending 500 KB may see the connection closed instead of reading it)."""
+    import json
+    import socket
+    from urllib.parse import urlparse
+
+    url = urlparse(api.base)
+    with socket.create_connection((url.hostname, url.port), timeout=30) as conn:
+        conn.sendall(b"POST /v1/jobs HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                     b"Content-Length: 500000\r\n\r\n{")
+        response = b""
+        while b"\r\n\r\n" not in response or not response.rstrip().endswith(b"}"):
+            chunk = conn.recv(65536)
+            if not chunk:
+                break
+            response += chunk
+    head, _, body = response.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 413") and b"application/problem+json" in head
+    assert "NDRF_MAX_UPLOAD_BYTES" in json.loads(body)["detail"]
 
 
 @pytest.mark.parametrize("change, field, message", [
@@ -95,7 +115,13 @@ def test_jobs_over_the_caps_are_refused(api, change, field, message):
 
 def test_a_large_mesh_is_refused(api):
     expect_problem(api, xml_job(files={"materials.xml": b64(MATERIALS), "meshes/quad.obj": b64(QUAD * 1000)}),
-                   422, "scene.files", "")
+                   422, "scene.files[meshes/quad.obj]", "the limit per file")
+
+
+def test_a_self_contained_scene_without_files_runs(api):
+    code, _, accepted = api.json("POST", "/v1/jobs", xml_job(SELF_CONTAINED_XML, files={}))
+    assert code == 202, accepted
+    assert api.wait_status(accepted["id"], {"succeeded", "failed"}, 120)["status"] == "succeeded"
 
 
 @pytest.mark.parametrize("data, message", [
@@ -103,7 +129,7 @@ def test_a_large_mesh_is_refused(api):
     (npy(np.full((16, 16, 3), np.nan)), "NaN"),
     (npy(np.full((16, 16, 3), -1.0)), "negative"),
     (b64(b"definitely not an image"), "unknown image format"),
-    ("@@not base64@@", ""),
+    ("@@not base64@@", "base64"),
 ])
 def test_bad_target_images_are_refused(api, data, message):
     job = {**small_job(), "targets": {"images": [{"sensor": 0, "data": data}]}}
@@ -111,7 +137,7 @@ def test_bad_target_images_are_refused(api, data, message):
 
 
 def test_schema_errors_name_the_field(api):
-    expect_problem(api, {**small_job(), "method": "magic"}, 422, "method")
-    expect_problem(api, {**small_job(), "unknown_field": 1}, 422, "unknown_field")
+    expect_problem(api, {**small_job(), "method": "magic"}, 422, "method", "ndrf-lhs")
+    expect_problem(api, {**small_job(), "unknown_field": 1}, 422, "unknown_field", "not permitted")
     code, headers, _ = api.request("POST", "/v1/jobs", raw=b"{not json")
     assert code == 422 and headers["content-type"] == "application/problem+json"

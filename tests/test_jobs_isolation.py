@@ -1,0 +1,102 @@
+"""The sandboxed child processes: whatever a scene does to the loader, the parent gets a clear
+description and goes on. Mitsuba is only ever loaded in the children here."""
+
+from __future__ import annotations
+
+import io
+import struct
+
+import numpy as np
+import pytest
+
+from services.jobs.frames import FrameError, array_bytes, array_from, read_frame, write_frame
+from services.jobs.isolation import ChildFailed, ChildLimits, exchange
+
+PLY_OVERFLOW_HEADER = (b"ply\nformat binary_little_endian 1.0\nelement vertex 4294967297\nproperty float x\n"
+                       b"property float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+                       b"end_header\n")
+
+
+def test_frames_round_trip_and_refuse_what_a_hostile_child_could_send():
+    stream = io.BytesIO()
+    write_frame(stream, "iteration", {"k": 1}, {"a": array_bytes(np.arange(6, dtype=np.float32).reshape(2, 3))})
+    write_frame(stream, "outcome", {"status": "succeeded"})
+    stream.seek(0)
+    kind, meta, blobs = read_frame(stream)
+    assert (kind, meta) == ("iteration", {"k": 1}) and array_from(blobs["a"], ndim=2).shape == (2, 3)
+    assert read_frame(stream)[0] == "outcome" and read_frame(stream) is None
+    with pytest.raises(FrameError, match="exceeds"):
+        read_frame(io.BytesIO(struct.pack(">Q", 1 << 40)))
+    with pytest.raises(FrameError, match="ended"):
+        read_frame(io.BytesIO(struct.pack(">Q", 100) + b"{}"))
+    pickled = io.BytesIO()
+    np.save(pickled, np.array([object()], dtype=object), allow_pickle=True)
+    with pytest.raises(FrameError):
+        array_from(pickled.getvalue())                        # never unpickles what a child sends
+
+
+def _check_start(tmp_path, ply_body: bytes):
+    (tmp_path / "scene").mkdir()
+    (tmp_path / "scene" / "m.ply").write_bytes(PLY_OVERFLOW_HEADER + ply_body)
+    xml = '<scene version="3.0.0"><shape type="ply"><string name="filename" value="m.ply"/></shape></scene>'
+    (tmp_path / "scene" / "scene.xml").write_text(xml)
+    spec = {"scene": {"xml": xml}, "parameters": [{"key": "x"}],
+            "targets": {"synthetic": {"values": {"x": 0.5}}}}
+    return {"spec": spec, "scene_file": str(tmp_path / "scene" / "scene.xml")}
+
+
+def test_a_loader_crash_is_described_with_the_file_it_was_reading(tmp_path):
+    """The PLY header overflow of issue 13, given to Mitsuba directly (no Python check before it):
+    the child dies by a signal and the parent names it and the file."""
+    start = _check_start(tmp_path, struct.pack("<3f", 0, 0, 0) * 4000)
+    with pytest.raises(ChildFailed) as failed:
+        exchange("check", start, ChildLimits(wall_seconds=60), tmp_path, "the scene loader")
+    message = str(failed.value)
+    assert message.startswith("the scene loader crashed (SIG") and message.endswith("reading m.ply"), message
+
+
+def test_a_child_over_its_wall_clock_is_stopped(tmp_path):
+    start = _check_start(tmp_path, b"")
+    with pytest.raises(ChildFailed, match=r"took longer than 0.2 s"):
+        exchange("check", start, ChildLimits(wall_seconds=0.2), tmp_path, "the scene loader")
+
+
+def test_a_child_over_its_memory_limit_fails_cleanly(tmp_path):
+    start = _check_start(tmp_path, b"")
+    with pytest.raises(ChildFailed, match=r"out of memory|exited with status|crashed"):
+        exchange("check", start, ChildLimits(memory_bytes=64 << 20, wall_seconds=60), tmp_path, "the scene loader")
+
+
+def test_the_child_environment_holds_no_secrets(tmp_path, monkeypatch):
+    from services.jobs.isolation import _environment
+
+    monkeypatch.setenv("NDRF_API_KEYS", "s3cret")
+    monkeypatch.setenv("REDIS_URL", "redis://x")
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "k")
+    env = _environment()
+    assert not {"NDRF_API_KEYS", "REDIS_URL", "AWS_SECRET_ACCESS_KEY"} & set(env)
+
+
+def test_a_job_canceled_as_its_process_starts_is_canceled_not_crashed(tmp_path):
+    """The stop signal may reach the child before it installed its handler (during interpreter
+    start-up): it dies of that signal, which is the stop that was asked for, not a crash."""
+    import threading
+
+    from schemas.job import JobSpec
+    from schemas.records import JobRecord, JobStatus
+    from services.jobs.runner import AttemptRunner
+    from services.jobs.state import JobStates, now_iso
+    from services.settings import Limits
+    from services.store.local import FolderStore
+    from tests.service import small_job
+
+    states = JobStates(FolderStore(tmp_path / "store"))
+    job_id, now = "0" * 19 + "1", now_iso()
+    spec = JobSpec.model_validate(small_job())
+    states.files(job_id).write("spec.json", spec.model_dump(mode="json"))
+    states.create(JobRecord(id=job_id, status=JobStatus.QUEUED, method=spec.method.value, scene="cornell-box",
+                            created=now, updated=now, iterations=spec.iterations))
+    states.transition(job_id, JobStatus.RUNNING, attempt="w#1")
+    runner = AttemptRunner(states, Limits(), tmp_path / "scratch")
+    result = runner.run(job_id, "w#1", lost=threading.Event(), stop=lambda: "canceled")
+    assert result.status == "canceled" and states.get(job_id).status is JobStatus.CANCELED

@@ -1,0 +1,61 @@
+"""One attempt in a sandboxed child, written by its parent: stops, fences and budgets (no Redis)."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from schemas.job import JobSpec
+from schemas.records import JobStatus
+from services.jobs.runner import AttemptRunner
+from services.jobs.service import JobService
+from services.queue.local import LocalEventBus, LocalJobQueue
+from services.settings import Limits
+from services.store.local import FolderStore
+from tests.service import small_job
+
+
+@pytest.fixture
+def claimed(tmp_path):
+    """A submitted job, claimed by attempt ``w#1``; returns ``(service, job_id, runner factory)``."""
+    service = JobService(FolderStore(tmp_path / "store"), LocalJobQueue(), LocalEventBus())
+    record, _ = service.submit(JobSpec.model_validate(small_job("direct", iterations=3)))
+    service.states.transition(record.id, JobStatus.RUNNING, attempt="w#1")
+
+    def runner(**limits) -> AttemptRunner:
+        return AttemptRunner(service.states, Limits(**limits), tmp_path / "scratch")
+
+    return service, record.id, runner
+
+
+def test_a_cancel_asked_before_the_child_is_ready_cancels_it_cleanly(claimed):
+    service, job_id, runner = claimed
+    result = runner().run(job_id, "w#1", lost=threading.Event(), stop=lambda: "canceled")
+    assert result.status == "canceled", result
+    assert service.states.get(job_id).status is JobStatus.CANCELED
+
+
+def test_a_lost_lease_fences_the_attempt_and_nothing_more_is_written(claimed):
+    service, job_id, runner = claimed
+    lost = threading.Event()
+    lost.set()
+    result = runner().run(job_id, "w#1", lost=lost, stop=lambda: None)
+    assert result.status == "fenced"
+    assert service.states.get(job_id).status is JobStatus.RUNNING      # the new owner decides
+    assert service.states.files(job_id).iterations() == []
+
+
+def test_a_job_over_its_disk_budget_fails_naming_the_setting(claimed):
+    service, job_id, runner = claimed
+    tight = runner()
+    tight.limits = tight.limits.model_copy(update={"job_bytes": 50_000})   # below the settings' floor: a test
+    result = tight.run(job_id, "w#1", lost=threading.Event(), stop=lambda: None)
+    assert result.status == "failed" and "NDRF_MAX_JOB_BYTES" in service.states.get(job_id).error
+
+
+def test_a_job_over_its_wall_clock_fails_naming_the_setting(claimed):
+    service, job_id, runner = claimed
+    result = runner(job_seconds=1.0).run(job_id, "w#1", lost=threading.Event(), stop=lambda: None)
+    assert result.status == "failed"
+    assert "NDRF_MAX_JOB_SECONDS" in service.states.get(job_id).error
