@@ -144,10 +144,15 @@ def _with_start(curve: dict, key: str) -> dict:
             f"{key}_spread": None if spread is None else [[start, start], *spread]}
 
 
+TITLE_CHARS = 100
+
+
 def accuracy_svg(curves: list[dict], title: str, path: Path) -> Path:
     """Parameter error and loss against compute seconds, one line per curve (mean over seeds,
     shaded from the best to the worst seed), log y."""
     width, height, legend = 960, 380, 26 * ((len(curves) + 3) // 4)
+    if len(title) > TITLE_CHARS:  # what fits in the width at 14 px
+        title = title[:TITLE_CHARS - 1].rstrip() + "…"
     parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height + legend + 30}" '
              f'font-family="system-ui, sans-serif" font-size="12" fill="#0f172a">',
              '<rect width="100%" height="100%" fill="#ffffff"/>',

@@ -1,0 +1,128 @@
+"""Where each method wins: whole jobs in the regime the paper claims for NDRF (issue 11).
+
+``python -m bench.regime [--iterations N] [--variants a,b] [--out bench/results/regime.json]``
+
+The job (``examples/bright-room.json``): the closed ``hidden-object`` room with its walls at
+albedo 0.95 to recover (from 0.5) together with the hidden sphere's albedo, so light paths are
+long: the synthetic target has every bounce (its depth is the measured converged depth), as a
+photograph has them. Each variant is the same job through the product's own loop
+(:func:`services.jobs.local.run_local`), one after the other in one process, so the ratios hold.
+Reported per variant: seconds per iteration (median, after the first), the time at which the
+largest parameter error first falls below ``--target-error`` (training warm-up included, target
+rendering and depth probing excluded: they are the same for every variant), and the final error.
+
+Variants:
+
+``prb``                 prb at the converged depth, Adam (0.8, 0.99) (the job's defaults)
+``prb-beta2-0.9``       the same with Adam (0.8, 0.9): a shorter second-moment memory
+``prb-depth-12``        prb truncated at depth 12 against the all-bounce target (what a user who
+                        calls Mitsuba's tutorial loop with its default depth gets)
+``prb-spp-64``          prb with 64 spp for the candidate and the adjoint pass (16x the samples)
+``ndrf-lhs``            NDRF, camera-hit query, the path-traced candidate at the converged depth
+``ndrf-lhs-field``      NDRF with the field candidate on cached first hits (no path tracing per
+                        iteration: its cost does not depend on the path length)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+ROOT = Path(__file__).resolve().parent.parent
+JOB = ROOT / "examples" / "bright-room.json"
+
+#: name -> changes to the job file
+VARIANTS: dict[str, dict] = {
+    "prb": {"method": "prb"},
+    "prb-beta2-0.9": {"method": "prb", "adam_betas": [0.8, 0.9]},
+    "prb-depth-12": {"method": "prb", "render": {"max_depth": 12}},
+    "prb-spp-64": {"method": "prb", "render": {"spp": 64, "gradient_spp": 64}},
+    "ndrf-lhs": {"method": "ndrf-lhs"},
+    "ndrf-lhs-field": {"method": "ndrf-lhs", "render": {"candidate": "field", "first_hits": "cached"}},
+}
+
+
+def _merge(base: dict, change: dict) -> dict:
+    out = dict(base)
+    for key, value in change.items():
+        out[key] = _merge(base.get(key, {}), value) if isinstance(value, dict) else value
+    return out
+
+
+def run_variant(job: dict, target_error: float) -> dict:
+    from schemas.job import JobSpec
+    from services.jobs.local import run_local
+    from services.store.job import JobFiles
+    from services.store.local import FolderStore
+
+    with tempfile.TemporaryDirectory() as tmp:
+        started = time.perf_counter()
+        summary = run_local(JobSpec.model_validate(job), Path(tmp) / "job")
+        wall = time.perf_counter() - started
+        files = JobFiles(FolderStore(tmp), "job")
+        records = [files.iteration_record(k) for k in files.iterations()]
+        depths = (files.read("plan.json") or {}).get("depths")
+    target = np.asarray(summary["target"])
+    elapsed, curve = 0.0, []
+    for record in records:
+        elapsed += sum(record["seconds"].values())
+        error = float(np.max(np.abs(np.asarray(record["updated_parameters"]) - target)))
+        curve.append({"iteration": record["iteration"], "seconds": elapsed, "error": error})
+    reached = next((c for c in curve if c["error"] < target_error), None)
+    per_iteration = [b["seconds"] - a["seconds"] for a, b in zip(curve, curve[1:], strict=False)]
+    return {"status": summary["status"], "final": summary["final"], "target": summary["target"],
+            "wall_seconds": wall, "seconds_per_iteration": float(np.median(per_iteration)) if per_iteration else None,
+            "first_iteration_seconds": curve[0]["seconds"] if curve else None,
+            "reached": reached, "final_error": curve[-1]["error"] if curve else None, "curve": curve,
+            "depths": depths}
+
+
+def table(results: dict, target_error: float) -> str:
+    from bench.common import markdown_table
+
+    rows = []
+    for name, r in results.items():
+        reached = r["reached"]
+        rows.append([name, f"{r['first_iteration_seconds']:.1f}", f"{r['seconds_per_iteration']:.2f}",
+                     f"{reached['iteration']} ({reached['seconds']:.0f} s)" if reached else "not reached",
+                     f"{r['final_error']:.3f}", f"{r['wall_seconds']:.0f}"])
+    return markdown_table(["variant", "iteration 0 s (warm-up)", "s / iteration", f"error < {target_error} at",
+                           "final max error", "job wall s"], rows)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m bench.regime", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--iterations", type=int, default=None, help="override the job's iterations")
+    parser.add_argument("--variants", default=",".join(VARIANTS), help=f"subset of {', '.join(VARIANTS)}")
+    parser.add_argument("--target-error", type=float, default=0.02)
+    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "regime.json")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    base = json.loads(JOB.read_text())
+    if args.iterations:
+        base["iterations"] = args.iterations
+    results = {}
+    for name in [v.strip() for v in args.variants.split(",") if v.strip()]:
+        if name not in VARIANTS:
+            parser.error(f"unknown variant {name!r}; known: {', '.join(VARIANTS)}")
+        log.info("regime: %s", name)
+        results[name] = run_variant(_merge(base, VARIANTS[name]), args.target_error)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps({"job": base, "target_error": args.target_error, "results": results},
+                                       indent=1))
+    text = table(results, args.target_error)
+    args.out.with_suffix(".md").write_text(f"Command: `python -m bench.regime {' '.join(argv or [])}`\n\n{text}\n")
+    log.info("\n%s", text)
+
+
+if __name__ == "__main__":
+    main()
