@@ -178,6 +178,17 @@ class JobSpec(_Strict):
                                   "Shorter than the usual (0.9, 0.999): with noisy Monte Carlo gradients and tens of "
                                   "iterations, a long first-moment memory overshoots the optimum and a long second-moment "
                                   "memory keeps the step large after the gradient has shrunk.")
+    optimizer: Literal["adam", "gauss-newton"] = Field(
+        "adam", description="Update rule of the scene parameters. 'adam': Adam with adam_betas. 'gauss-newton': "
+                            "Levenberg-Marquardt steps from the gradient images dy/dp of every iteration (H = (2/n) "
+                            "J^T J; l2 loss only), no scalar moving more than the learning rate per iteration: for "
+                            "scalars that trade against each other in the image (a narrow curved valley of the loss, "
+                            "where Adam crawls). Costs one gradient-image pass per iteration (prb: one forward-mode "
+                            "render per scalar).")
+    damping: float = Field(1e-4, ge=0.0, le=1e6, description="Marquardt damping lambda of 'gauss-newton': the step "
+                                                             "solves (H + lambda diag(H)) delta = -grad. It must stay "
+                                                             "below the ratio of H's smallest to largest curvature, or "
+                                                             "it damps exactly the valley direction the step is for.")
     final_learning_rate_ratio: float = Field(
         0.1, gt=0, le=1.0, description="Learning rate of the last iteration as a fraction of learning_rate "
                                        "(geometric decay; 1 keeps it constant). Noisy gradients need the decay "
@@ -212,5 +223,7 @@ class JobSpec(_Strict):
             missing = [k for k in keys if k not in self.targets.synthetic.values]
             if missing:
                 raise ValueError(f"targets.synthetic.values has no value for {missing}")
+        if self.optimizer == "gauss-newton" and self.loss != "l2":
+            raise ValueError(f"optimizer 'gauss-newton' models the l2 loss; got loss {self.loss!r}")
         return self
 

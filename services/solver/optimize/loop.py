@@ -27,6 +27,7 @@ from services.solver.estimators.methods import GradientMethod, make_method
 from services.solver.estimators.training import FieldTrainer, fields_of, trainer_for
 from services.solver.optimize import checkpoint
 from services.solver.optimize.adam import Adam
+from services.solver.optimize.gauss_newton import gauss_newton_hessian, gauss_newton_step
 from services.solver.optimize.losses import image_loss
 from services.solver.optimize.report import RunAborted, RunOutcome, RunReporter
 from services.solver.optimize.setup import Prepared, prepare
@@ -184,6 +185,8 @@ class InverseRenderingRun:
         t1 = time.perf_counter()
         fields = fields_of(trainer)
         loss, dz_dp, renders, gradients = 0.0, np.zeros(problem.parameters.n), {}, {}
+        newton = spec.optimizer == "gauss-newton"
+        hessian = np.zeros((problem.parameters.n, problem.parameters.n))
         gradient_seconds = image_seconds = 0.0
         for sensor, target in sorted(prepared.targets.items()):
             r0 = time.perf_counter()
@@ -198,15 +201,23 @@ class InverseRenderingRun:
             dz_dp += dz_dp_sensor
             loss += z
             r1 = time.perf_counter()
-            if write_images:  # the samples loss_gradient used (camera-hit methods): the images match dz/dp
-                renders[sensor] = np.nan_to_num(candidate, nan=0.0, posinf=0.0, neginf=0.0)  # counted in loss_of
-                images = method.images(problem, fields, spp=spec.render.gradient_spp,
-                                       seed=derive_seed(seed, "gradient"), sensor=sensor)
-                gradients[sensor] = _finite(problem, "gradient pixels (non-finite)", images)
+            if write_images or newton:  # the samples loss_gradient used (camera-hit methods): images match dz/dp
+                images = _finite(problem, "gradient pixels (non-finite)",
+                                 method.images(problem, fields, spp=spec.render.gradient_spp,
+                                               seed=derive_seed(seed, "gradient"), sensor=sensor))
+                if newton:
+                    hessian += gauss_newton_hessian(images)
+                if write_images:
+                    renders[sensor] = np.nan_to_num(candidate, nan=0.0, posinf=0.0, neginf=0.0)  # counted in loss_of
+                    gradients[sensor] = images
             image_seconds += time.perf_counter() - r1
             gradient_seconds += r1 - r0
         lr = learning_rate(spec, k)
-        updated = state.adam.step(state.parameters, dz_dp, prepared.lower, prepared.upper, lr=lr)
+        if newton:
+            updated = gauss_newton_step(state.parameters, dz_dp, hessian, prepared.lower, prepared.upper, lr=lr,
+                                        damping=spec.damping)
+        else:
+            updated = state.adam.step(state.parameters, dz_dp, prepared.lower, prepared.upper, lr=lr)
         problem.parameters.assign(updated)
         record = IterationRecord(
             iteration=k, loss=loss, parameters=state.parameters.tolist(), updated_parameters=updated.tolist(),
