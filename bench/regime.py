@@ -1,6 +1,7 @@
 """Where each method wins: whole jobs in the regime the paper claims for NDRF (issue 11).
 
 ``python -m bench.regime [--iterations N] [--variants a,b] [--out bench/results/regime.json]``
+``python -m bench.regime --check-loss``: how well each end point fits the target (see :func:`check_loss`)
 
 The job (``examples/bright-room.json``): the closed ``hidden-object`` room with its walls at
 albedo 0.95 to recover (from 0.5) together with the hidden sphere's albedo, so light paths are
@@ -18,6 +19,12 @@ Variants:
 ``prb-depth-12``        prb truncated at depth 12 against the all-bounce target (what a user who
                         calls Mitsuba's tutorial loop with its default depth gets)
 ``prb-spp-64``          prb with 64 spp for the candidate and the adjoint pass (16x the samples)
+``prb-constant-lr-400``  prb with a constant learning rate for 400 iterations (no decay)
+``prb-gauss-newton``    prb, Gauss-Newton steps (``"optimizer": "gauss-newton"``): the Jacobian from
+                        one forward-mode render per scalar and iteration
+``ndrf-lhs-gauss-newton``  NDRF, Gauss-Newton steps: the Jacobian from ``dL_theta`` at the camera hits
+``*-gauss-newton-constant``  the same with a constant trust region (learning rate 0.05, no decay)
+``ndrf-lhs-gauss-newton-160``  NDRF, Gauss-Newton, 160 iterations (the decay spread over twice as many)
 ``ndrf-lhs``            NDRF, camera-hit query, the path-traced candidate at the converged depth
 ``ndrf-lhs-field``      NDRF with the field candidate on cached first hits (no path tracing per
                         iteration: its cost does not depend on the path length)
@@ -45,6 +52,13 @@ VARIANTS: dict[str, dict] = {
     "prb-beta2-0.9": {"method": "prb", "adam_betas": [0.8, 0.9]},
     "prb-depth-12": {"method": "prb", "render": {"max_depth": 12}},
     "prb-spp-64": {"method": "prb", "render": {"spp": 64, "gradient_spp": 64}},
+    "prb-constant-lr-400": {"method": "prb", "final_learning_rate_ratio": 1.0, "iterations": 400},
+    "prb-gauss-newton": {"method": "prb", "optimizer": "gauss-newton"},
+    "ndrf-lhs-gauss-newton": {"method": "ndrf-lhs", "optimizer": "gauss-newton"},
+    "ndrf-lhs-gauss-newton-constant": {"method": "ndrf-lhs", "optimizer": "gauss-newton",
+                                       "final_learning_rate_ratio": 1.0},
+    "prb-gauss-newton-constant": {"method": "prb", "optimizer": "gauss-newton", "final_learning_rate_ratio": 1.0},
+    "ndrf-lhs-gauss-newton-160": {"method": "ndrf-lhs", "optimizer": "gauss-newton", "iterations": 160},
     "ndrf-lhs": {"method": "ndrf-lhs"},
     "ndrf-lhs-field": {"method": "ndrf-lhs", "render": {"candidate": "field", "first_hits": "cached"}},
 }
@@ -98,6 +112,31 @@ def table(results: dict, target_error: float) -> str:
                            "final max error", "job wall s"], rows)
 
 
+def check_loss(path: Path, spp: int = 256) -> str:
+    """The image error at the truth and at each variant's end point, from ``spp``-spp renders at
+    the target's depth: ``E[(y - t)²] = bias² + Var(y)`` per value, so each point is rendered
+    twice with independent seeds and ``Var(y)`` (half the mean squared difference of the two
+    renders) is subtracted: what remains is how well the point fits the target."""
+    from bench.common import markdown_table
+    from schemas.job import JobSpec
+    from services.solver.estimators.render import render
+    from services.solver.optimize.setup import prepare
+
+    saved = json.loads(path.read_text())
+    prepared = prepare(JobSpec.model_validate(saved["job"]))
+    params, target = prepared.problem.parameters, prepared.targets[0].astype(np.float64)
+    points = [("truth", prepared.target_values)] + [(n, r["final"]) for n, r in saved["results"].items()]
+    rows = []
+    for name, values in points:
+        params.assign(np.asarray(values, np.float64))
+        a, b = (render(prepared.problem, spp=spp, seed=seed, max_depth=prepared.depths["target"]).astype(np.float64)
+                for seed in (11, 12))
+        mse = (np.mean((a - target) ** 2) + np.mean((b - target) ** 2)) / 2
+        variance = np.mean((a - b) ** 2) / 2
+        rows.append([name, f"{mse:.5f}", f"{variance:.5f}", f"{mse - variance:.5f}"])
+    return markdown_table(["end point", f"MSE to the target ({spp} spp)", "Var(y)", "MSE - Var(y)"], rows)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m bench.regime", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -105,8 +144,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--variants", default=",".join(VARIANTS), help=f"subset of {', '.join(VARIANTS)}")
     parser.add_argument("--target-error", type=float, default=0.02)
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "regime.json")
+    parser.add_argument("--check-loss", action="store_true",
+                        help="instead of running: the image error at the truth and at the end points in --out")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    if args.check_loss:
+        text = check_loss(args.out)
+        args.out.with_name(args.out.stem + "-loss.md").write_text(
+            f"Command: `python -m bench.regime --check-loss`\n\n{text}\n")
+        log.info("\n%s", text)
+        return
     base = json.loads(JOB.read_text())
     if args.iterations:
         base["iterations"] = args.iterations
