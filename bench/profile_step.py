@@ -22,8 +22,8 @@ PARTS = (
     ("services/fields/", "field inputs (normalisation, SH, caching)"),
     ("services/sampling/", "sampling and BSDF/emitter evaluation (Mitsuba/Dr.Jit)"),
     ("services/scene/params", "forward-mode AD of bsdf.eval / emitter.eval"),
-    ("services/estimators/residuals", "residual assembly"),
-    ("services/estimators/", "training loop (loss, optimizer step)"),
+    ("services/solver/estimators/residuals", "residual assembly"),
+    ("services/solver/estimators/", "training loop (loss, optimizer step)"),
 )
 
 
@@ -33,7 +33,7 @@ def summarize(path: Path) -> str:
     for line in path.read_text().splitlines():
         stack, _, n = line.rpartition(" ")
         frames = stack.split(";")
-        if not any("services/estimators/training" in f for f in frames):
+        if not any("services/solver/estimators/training" in f for f in frames):
             continue                                       # start-up, scene loading, compilation
         if any(f.startswith(("backward ", "_engine_run_backward ")) for f in frames):
             part = "backward pass (autograd)"

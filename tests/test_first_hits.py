@@ -1,4 +1,4 @@
-"""Cached camera first hits (services/estimators/first_hits.py): the field candidate against a
+"""Cached camera first hits (services/solver/estimators/first_hits.py): the field candidate against a
 path tracer, and the per-ray contraction of dz/dy against the per-scalar images.
 
 The scene is the sky-lit plane of tests/scenes.py, whose fields are known exactly (L_r = ρ and

@@ -1,4 +1,4 @@
-"""The residual pool (services/estimators/pool.py): pooled batches are the batches fresh sampling
+"""The residual pool (services/solver/estimators/pool.py): pooled batches are the batches fresh sampling
 draws with the same seeds, stay exact after a parameter step when sampling does not depend on the
 parameter, and unbiased (equal in expectation) when it does; batches are redrawn on schedule and
 re-evaluated only when the parameters changed."""

@@ -1,4 +1,4 @@
-"""Adaptive training steps (services/estimators/schedule.py) on scripted residual norms."""
+"""Adaptive training steps (services/solver/estimators/schedule.py) on scripted residual norms."""
 
 from __future__ import annotations
 
