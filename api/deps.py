@@ -69,15 +69,21 @@ def require_caller(request: Request, settings: SettingsDep) -> Caller:
     return caller
 
 
-def require_reader(request: Request, settings: SettingsDep, job_id: str) -> Caller:
-    """A bearer key, or (GET only) a read token of this very job."""
+def reader_of(request: Request, settings: Settings, resource_id: str) -> Caller:
+    """A bearer key, or (GET only) a read token of this very resource (a job or an experiment):
+    the caller then reads that one resource, and the routes it opens only touch ``resource_id``."""
     caller = caller_of(request, settings)
     if caller is not None:
         return caller
     token = request.query_params.get("token")
-    if request.method == "GET" and token and tokens.verify(settings.signing_secret(), token, job_id):
-        return Caller(f"token:{job_id}", admin=True)  # reads this one job: the routes only touch job_id
+    if request.method == "GET" and token and tokens.verify(settings.signing_secret(), token, resource_id):
+        return Caller(f"token:{resource_id}", admin=True)
     raise _unauthorized()
+
+
+def require_reader(request: Request, settings: SettingsDep, job_id: str) -> Caller:
+    """A bearer key, or (GET only) a read token of this very job."""
+    return reader_of(request, settings, job_id)
 
 
 def require_admin(request: Request, settings: SettingsDep) -> Caller:

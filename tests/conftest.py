@@ -18,6 +18,19 @@ def mi():
 
 
 @pytest.fixture(scope="session")
+def browser():
+    """One headless Chromium for the dashboard tests (``tests/browser.py``), launched on first use."""
+    from playwright.sync_api import sync_playwright
+
+    from tests.browser import ARGS, CHROMIUM
+
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
+        yield browser
+        browser.close()
+
+
+@pytest.fixture(scope="session")
 def s3_server():
     """moto's S3 server on loopback, in a child process, for the whole session (tests/s3server.py)."""
     from tests.s3server import S3Server

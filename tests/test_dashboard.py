@@ -16,14 +16,12 @@ from pathlib import Path
 
 import pytest
 
+from tests.browser import CHROMIUM
 from tests.scenes import QUAD_OBJ, UPLOAD_MATERIALS, UPLOAD_XML
 from tests.service import small_job, start_api
 
-CHROMIUM = Path("/usr/bin/chromium")
 ROOT = Path(__file__).resolve().parent.parent
 KEY = "dash-key"
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 FINISHED = ("succeeded", "failed", "canceled")
 
 
@@ -37,16 +35,6 @@ def api(tmp_path_factory):
     proc, api = start_api(tmp, {"NDRF_STORE": str(tmp / "store"), "NDRF_API_KEYS": KEY})
     yield api
     proc.kill(signal.SIGKILL)
-
-
-@pytest.fixture(scope="module")
-def browser():
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
-        yield browser
-        browser.close()
 
 
 @pytest.fixture()

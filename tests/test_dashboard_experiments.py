@@ -14,8 +14,9 @@ import time
 
 import pytest
 
+from tests.browser import CHROMIUM
 from tests.service import small_job, start_api
-from tests.test_dashboard import ARGS, CHROMIUM, KEY, open_with_key
+from tests.test_dashboard import KEY, open_with_key
 
 pytestmark = pytest.mark.skipif(not CHROMIUM.exists(), reason="needs Debian's Chromium at /usr/bin/chromium")
 
@@ -26,16 +27,6 @@ def api(tmp_path_factory):
     proc, api = start_api(tmp, {"NDRF_STORE": str(tmp / "store"), "NDRF_API_KEYS": KEY, "NDRF_EMBEDDED_WORKERS": "2"})
     yield api
     proc.kill(signal.SIGKILL)
-
-
-@pytest.fixture(scope="module")
-def browser():
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
-        yield browser
-        browser.close()
 
 
 @pytest.fixture()

@@ -18,7 +18,7 @@ from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from fastapi.responses import PlainTextResponse, StreamingResponse
 
 from api import tokens
-from api.deps import RuntimeDep, SettingsDep, caller_of, require_caller
+from api.deps import RuntimeDep, SettingsDep, reader_of, require_caller
 from api.problems import ProblemDetails, ProblemError
 from schemas.experiments import (
     Curves,
@@ -50,14 +50,7 @@ EXPERIMENT_PATTERN = "^e[0-9a-f]{20}$"
 
 def require_experiment_reader(request: Request, settings: SettingsDep, exp_id: str) -> Caller:
     """A bearer key, or (GET only) a read token of this very experiment."""
-    caller = caller_of(request, settings)
-    if caller is not None:
-        return caller
-    token = request.query_params.get("token")
-    if request.method == "GET" and token and tokens.verify(settings.signing_secret(), token, exp_id):
-        return Caller(f"token:{exp_id}", admin=True)    # the routes below only touch exp_id
-    raise ProblemError(401, "Unauthorized", "a valid API key is required: Authorization: Bearer <key>",
-                       slug="unauthorized", headers={"WWW-Authenticate": 'Bearer realm="ndrf"'})
+    return reader_of(request, settings, exp_id)
 
 
 ReaderDep = Annotated[Caller, Depends(require_experiment_reader)]
