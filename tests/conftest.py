@@ -17,9 +17,11 @@ def mi():
     return use_mitsuba()
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser():
-    """One headless Chromium for the dashboard tests (``tests/browser.py``), launched on first use."""
+    """A headless Chromium per dashboard test module (``tests/browser.py``). Module scope, not
+    session: Playwright's sync API keeps an event loop running in this thread while it is open,
+    and later tests call ``asyncio.run``."""
     from playwright.sync_api import sync_playwright
 
     from tests.browser import ARGS, CHROMIUM
