@@ -22,7 +22,11 @@ Variants:
 ``prb-constant-lr-400``  prb with a constant learning rate for 400 iterations (no decay)
 ``prb-gauss-newton``    prb, Gauss-Newton steps (``"optimizer": "gauss-newton"``): the Jacobian from
                         one forward-mode render per scalar and iteration
+``prb-gauss-newton-spp-16``  the same with 16 spp for the Jacobian and the adjoint pass (4x): is a
+                        less noisy forward-mode Jacobian enough for prb?
 ``ndrf-lhs-gauss-newton``  NDRF, Gauss-Newton steps: the Jacobian from ``dL_theta`` at the camera hits
+``*-gauss-newton-cross``  the same with ``"hessian": "cross"``: the curvature from two independent
+                        half-sample Jacobians, without the upward bias of their noise
 ``*-gauss-newton-constant``  the same with a constant trust region (learning rate 0.05, no decay)
 ``ndrf-lhs-gauss-newton-160``  NDRF, Gauss-Newton, 160 iterations (the decay spread over twice as many)
 ``ndrf-lhs``            NDRF, camera-hit query, the path-traced candidate at the converged depth
@@ -35,6 +39,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -54,7 +59,10 @@ VARIANTS: dict[str, dict] = {
     "prb-spp-64": {"method": "prb", "render": {"spp": 64, "gradient_spp": 64}},
     "prb-constant-lr-400": {"method": "prb", "final_learning_rate_ratio": 1.0, "iterations": 400},
     "prb-gauss-newton": {"method": "prb", "optimizer": "gauss-newton"},
+    "prb-gauss-newton-spp-16": {"method": "prb", "optimizer": "gauss-newton", "render": {"gradient_spp": 16}},
     "ndrf-lhs-gauss-newton": {"method": "ndrf-lhs", "optimizer": "gauss-newton"},
+    "prb-gauss-newton-cross": {"method": "prb", "optimizer": "gauss-newton", "hessian": "cross"},
+    "ndrf-lhs-gauss-newton-cross": {"method": "ndrf-lhs", "optimizer": "gauss-newton", "hessian": "cross"},
     "ndrf-lhs-gauss-newton-constant": {"method": "ndrf-lhs", "optimizer": "gauss-newton",
                                        "final_learning_rate_ratio": 1.0},
     "prb-gauss-newton-constant": {"method": "prb", "optimizer": "gauss-newton", "final_learning_rate_ratio": 1.0},
@@ -167,7 +175,8 @@ def main(argv: list[str] | None = None) -> None:
         args.out.write_text(json.dumps({"job": base, "target_error": args.target_error, "results": results},
                                        indent=1))
     text = table(results, args.target_error)
-    args.out.with_suffix(".md").write_text(f"Command: `python -m bench.regime {' '.join(argv or [])}`\n\n{text}\n")
+    command = " ".join(sys.argv[1:] if argv is None else argv)
+    args.out.with_suffix(".md").write_text(f"Command: `python -m bench.regime {command}`\n\n{text}\n")
     log.info("\n%s", text)
 
 
