@@ -74,11 +74,14 @@ class Load:
             return 0
 
     async def stream(self, http: httpx.AsyncClient, job_id: str, delays: list[float], opened: list[int]) -> None:
-        """One SSE client: records the delay of every iteration event (event ``time`` -> received)."""
+        """One SSE client: records the delay of every iteration event written while it is connected
+        (event ``time`` -> received). Events written before the response started are the replay
+        of what it missed while connecting (``Last-Event-ID``), not live delivery: not counted."""
         try:
             after = str(self.last_seq(job_id))
             async with http.stream("GET", f"/v1/jobs/{job_id}/events", headers={"Last-Event-ID": after}) as resp:
                 resp.raise_for_status()
+                connected = time.time()
                 opened.append(1)
                 async for line in resp.aiter_lines():
                     if self.stop.is_set():
@@ -87,8 +90,9 @@ class Load:
                         continue
                     event = json.loads(line[6:])
                     received = time.time()
-                    if event.get("type") == "iteration":
-                        delays.append(received - datetime.fromisoformat(event["time"]).timestamp())
+                    written = datetime.fromisoformat(event["time"]).timestamp() if "time" in event else 0.0
+                    if event.get("type") == "iteration" and written >= connected:
+                        delays.append(received - written)
         except (httpx.HTTPError, asyncio.CancelledError):
             return
 

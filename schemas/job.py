@@ -170,7 +170,7 @@ class JobSpec(_Strict):
     scene: SceneSpec = Field(description="The scene: {'builtin': NAME} or {'xml': ..., 'files': {...}}.")
     parameters: list[ParameterSpec] = Field(min_length=1, max_length=64, description="Parameters to recover.")
     targets: TargetSpec = Field(description="{'synthetic': {...}} or {'images': [...]}.")
-    method: Method = Field(Method.NDRF_RHS, description=METHOD_HELP)
+    method: Method | Literal["auto"] = Field(Method.NDRF_RHS, description=METHOD_HELP)
     iterations: int = Field(60, ge=1, le=100000, description="Optimization iterations.")
     learning_rate: float = Field(0.05, gt=0, le=100.0, description="Adam learning rate of the scene parameters.")
     adam_betas: tuple[float, float] = Field(
@@ -189,6 +189,11 @@ class JobSpec(_Strict):
                                                              "solves (H + lambda diag(H)) delta = -grad. It must stay "
                                                              "below the ratio of H's smallest to largest curvature, or "
                                                              "it damps exactly the valley direction the step is for.")
+    hessian: Literal["product", "cross"] = Field(
+        "product", description="Gauss-Newton's curvature from the gradient images J: 'product' (2/n) J^T J from one "
+                               "estimate, biased upwards by J's Monte Carlo variance, which damps the valley direction; "
+                               "'cross' (1/n)(J_a^T J_b + J_b^T J_a) from two independent half-sample estimates, "
+                               "unbiased, noisier (eigenvalues below 1e-6 of the largest are raised to it).")
     final_learning_rate_ratio: float = Field(
         0.1, gt=0, le=1.0, description="Learning rate of the last iteration as a fraction of learning_rate "
                                        "(geometric decay; 1 keeps it constant). Noisy gradients need the decay "
@@ -225,5 +230,7 @@ class JobSpec(_Strict):
                 raise ValueError(f"targets.synthetic.values has no value for {missing}")
         if self.optimizer == "gauss-newton" and self.loss != "l2":
             raise ValueError(f"optimizer 'gauss-newton' models the l2 loss; got loss {self.loss!r}")
+        if self.hessian != "product" and self.optimizer != "gauss-newton":
+            raise ValueError(f"hessian {self.hessian!r} is Gauss-Newton's; the optimizer is {self.optimizer!r}")
         return self
 

@@ -67,6 +67,24 @@ def test_embedded_submit_stream_succeed_and_fetch_images(tmp_path, store_env):
         proc.kill(signal.SIGTERM)
 
 
+def test_an_auto_job_says_what_it_picked_through_the_api(tmp_path, store_env):
+    """``"method": "auto"`` over HTTP: the trial is announced on the stream, the record keeps what
+    was asked, the plan says what ran and why."""
+    proc, api = start_api(tmp_path, store_env)
+    try:
+        status, _, accepted = api.json("POST", "/v1/jobs", small_job("auto", iterations=2))
+        assert status == 202
+        events = [e["data"] for e in read_sse(api, accepted["id"], timeout=300)]
+        kinds = [e["type"] for e in events]
+        assert "auto" in kinds and kinds.index("auto") < kinds.index("plan") and events[-1]["status"] == "succeeded"
+        _, _, job = api.json("GET", f"/v1/jobs/{accepted['id']}")
+        assert job["method"] == "auto"
+        assert job["plan"]["method"] == job["plan"]["auto"]["picked"] in ("prb", "ndrf-lhs", "ndrf-rhs")
+        assert "predicted fastest" in job["plan"]["auto"]["reason"]
+    finally:
+        proc.kill(signal.SIGTERM)
+
+
 def test_idempotent_resubmission_returns_the_same_job(stack):
     api = stack.api
     first = api.json("POST", "/v1/jobs", small_job(), {"Idempotency-Key": "retry-me"})

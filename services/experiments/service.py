@@ -150,7 +150,7 @@ class ExperimentService:
         validate_runs(base, planned, self.limits, preflight)
         now = now_iso()
         record = ExperimentRecord(id=new_experiment_id(), name=spec.name, owner=caller.owner, created=now,
-                                  updated=now, sweep=sweep, varied=varied, base_method=spec.base.method.value,
+                                  updated=now, sweep=sweep, varied=varied, base_method=str(spec.base.method),
                                   base_scene=scene_label(spec.base), base_iterations=spec.base.iterations,
                                   base_job=spec.base_job,
                                   runs=[RunState(index=i, key=p.key, values=p.values) for i, p in enumerate(planned)])

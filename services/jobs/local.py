@@ -87,7 +87,7 @@ def _claim(states: JobStates, files: JobFiles, spec: JobSpec, resume: bool) -> s
         files.write(JobFiles.SPEC, spec.model_dump(mode="json"))
         now = now_iso()
         record = states.create(JobRecord(id=files.job_id, name=spec.name, owner="local", status=JobStatus.QUEUED,
-                                         method=spec.method.value, scene=scene_label(spec), created=now, updated=now,
+                                         method=str(spec.method), scene=scene_label(spec), created=now, updated=now,
                                          iterations=spec.iterations, fingerprint=spec.fingerprint()))
     attempt = f"local#{record.attempts + 1}"
     states.transition(files.job_id, JobStatus.RUNNING, attempt=attempt, attempts=record.attempts + 1, error=None,

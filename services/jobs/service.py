@@ -136,12 +136,12 @@ class JobService:
         files.write(JobFiles.SPEC, spec.model_dump(mode="json"))
         now = now_iso()
         record = JobRecord(id=job_id, name=spec.name, owner=caller.owner, status=JobStatus.QUEUED,
-                           method=spec.method.value, scene=scene_label(spec), created=now, updated=now,
+                           method=str(spec.method), scene=scene_label(spec), created=now, updated=now,
                            iterations=spec.iterations, idempotency_key=idempotency_key,
                            fingerprint=spec.fingerprint(), **extra)
         self.states.create(record)
         self.queue.enqueue(job_id)
-        log.info("job %s queued (%s on %s)", job_id, spec.method.value, record.scene)
+        log.info("job %s queued (%s on %s)", job_id, spec.method, record.scene)
         return record, True
 
     def _claim(self, caller: Caller, key: str, job_id: str) -> JobRecord | None:

@@ -3,7 +3,8 @@ stores them; the solver never touches the store).
 
 A checkpoint holds the index of the next iteration, the parameter vector and its Adam state, both
 fields and their optimizers (via ``FieldTrainer.state_dict``, which includes the training-step
-counter that every sample seed derives from), torch's RNG state, and a fingerprint of the job so
+counter that every sample seed derives from), torch's RNG state, the gradient method that ran (an
+``auto`` job's pick), and a fingerprint of the job so
 that a checkpoint is never loaded into a different job. It is read with ``weights_only=True``:
 tensors and plain data only, so a checkpoint from the store cannot run code.
 """
@@ -19,9 +20,10 @@ from schemas.job import JobSpec
 
 
 def dumps(*, spec: JobSpec, next_iteration: int, parameters: np.ndarray, adam: dict, trainer: dict | None,
-          attempt: str | None = None) -> bytes:
+          attempt: str | None = None, method: str | None = None) -> bytes:
     state = {
         "fingerprint": spec.fingerprint(),
+        "method": method,
         "next_iteration": next_iteration,
         "parameters": np.asarray(parameters, np.float64).tolist(),
         "adam": adam,
@@ -41,3 +43,10 @@ def loads(blob: bytes, spec: JobSpec) -> dict:
         raise ValueError("the checkpoint belongs to a different job specification")
     torch.set_rng_state(state["torch_rng"])
     return state
+
+
+def method_of(blob: bytes) -> str | None:
+    """The gradient method the checkpointed run used (what an ``auto`` job picked), without
+    touching torch's random state."""
+    state = torch.load(io.BytesIO(blob), map_location="cpu", weights_only=True)
+    return state.get("method")

@@ -22,11 +22,14 @@ import numpy as np
 
 from schemas.errors import InvalidJob
 from schemas.job import JobSpec
+from schemas.methods import AUTO, AUTO_CANDIDATES
 from schemas.records import IterationRecord
-from services.solver.estimators.methods import GradientMethod, make_method
-from services.solver.estimators.training import FieldTrainer, fields_of, trainer_for
+from services.solver.estimators.methods import GradientMethod
+from services.solver.estimators.training import FieldTrainer, fields_of
 from services.solver.optimize import checkpoint
 from services.solver.optimize.adam import Adam
+from services.solver.optimize.auto import choose_method
+from services.solver.optimize.build import build
 from services.solver.optimize.gauss_newton import gauss_newton_hessian, gauss_newton_step
 from services.solver.optimize.losses import image_loss
 from services.solver.optimize.report import RunAborted, RunOutcome, RunReporter
@@ -83,6 +86,7 @@ class InverseRenderingRun:
         self.reporter = reporter
         self.scene_file = scene_file
         self.resume = resume
+        self.method_name = str(spec.method)  # the method that runs: an auto job's pick once execute() chose
 
     def execute(self) -> RunOutcome:
         """Run to the end, to a cancel or to an interruption. A job that fails returns a failed
@@ -91,13 +95,9 @@ class InverseRenderingRun:
         state = trainer = None
         try:
             prepared = prepare(self.spec, scene_file=self.scene_file)
-            method = make_method(self.spec.method, prepared.problem.plan, prepared.depths["render"])
-            render = self.spec.render
-            trainer = trainer_for(prepared.problem, method, self.spec.training, self.spec.seed,
-                                  radiance=render.candidate == "field")
-            if render.candidate == "field" or render.first_hits == "cached":
-                method = self._cached(prepared, method, trainer)
-            self.reporter.plan(self._plan(prepared, method, trainer))
+            self.method_name, choice = self._method_name(prepared)
+            method, trainer = build(prepared, self.method_name)
+            self.reporter.plan(self._plan(prepared, method, trainer, choice))
             state = self._initial_state(prepared, trainer)
             self.reporter.targets(prepared.targets)
             for k in range(state.next_iteration, self.spec.iterations):
@@ -126,6 +126,19 @@ class InverseRenderingRun:
             return self._outcome("failed", state, started, error=f"{type(exc).__name__}: {exc}")
 
     # -------------------------------------------------------------- phases
+
+    def _method_name(self, prepared: Prepared) -> tuple[str, dict | None]:
+        """The job's method; for ``auto``, the trial's pick (``services.solver.optimize.auto``), or
+        on resume the pick the checkpoint recorded (timings differ between attempts; the method
+        must not)."""
+        if self.spec.method != AUTO:
+            return str(self.spec.method), None
+        saved = checkpoint.method_of(self.resume) if self.resume is not None else None
+        if saved is not None:
+            return saved, {"picked": saved, "reason": "picked by an earlier attempt of this job (its checkpoint)"}
+        self.reporter.progress("auto", {"candidates": [str(m) for m in AUTO_CANDIDATES]})
+        choice = choose_method(prepared, between=self._stop_if_asked)
+        return choice.method, choice.to_json()
 
     def _stop_if_asked(self) -> None:
         reason = self.reporter.should_stop()
@@ -201,15 +214,22 @@ class InverseRenderingRun:
             dz_dp += dz_dp_sensor
             loss += z
             r1 = time.perf_counter()
-            if write_images or newton:  # the samples loss_gradient used (camera-hit methods): images match dz/dp
+            if newton and spec.hessian == "cross":  # two independent halves: an unbiased JᵀJ
+                halves = [_finite(problem, "gradient pixels (non-finite)",
+                                  method.images(problem, fields, spp=max(1, spec.render.gradient_spp // 2),
+                                                seed=derive_seed(seed, "gradient", half), sensor=sensor))
+                          for half in ("a", "b")]
+                hessian += gauss_newton_hessian(*halves)
+                images = (halves[0] + halves[1]) / 2
+            elif write_images or newton:  # the samples loss_gradient used (camera-hit methods): images match dz/dp
                 images = _finite(problem, "gradient pixels (non-finite)",
                                  method.images(problem, fields, spp=spec.render.gradient_spp,
                                                seed=derive_seed(seed, "gradient"), sensor=sensor))
                 if newton:
                     hessian += gauss_newton_hessian(images)
-                if write_images:
-                    renders[sensor] = np.nan_to_num(candidate, nan=0.0, posinf=0.0, neginf=0.0)  # counted in loss_of
-                    gradients[sensor] = images
+            if write_images:
+                renders[sensor] = np.nan_to_num(candidate, nan=0.0, posinf=0.0, neginf=0.0)  # counted in loss_of
+                gradients[sensor] = images
             image_seconds += time.perf_counter() - r1
             gradient_seconds += r1 - r0
         lr = learning_rate(spec, k)
@@ -230,24 +250,15 @@ class InverseRenderingRun:
         state.history.append(record)
         self.reporter.iteration(record, renders or None, gradients or None)
 
-    def _cached(self, prepared: Prepared, method: GradientMethod, trainer: FieldTrainer | None) -> GradientMethod:
-        """The method on camera first hits traced once per job (``render.candidate`` / ``first_hits``)."""
-        from services.solver.estimators.first_hits import FirstHitCache
-        from services.solver.estimators.methods.cached import CachedFirstHits
-
-        fields = list(trainer.fields().values()) if trainer is not None else []
-        cache = FirstHitCache(prepared.problem, sorted(prepared.targets), self.spec.render.gradient_spp,
-                              self.spec.seed, fields)
-        return CachedFirstHits(method, cache, field_candidate=self.spec.render.candidate == "field",
-                               cached_lhs=self.spec.render.first_hits == "cached")
-
     # -------------------------------------------------------------- reports
 
-    def _plan(self, prepared: Prepared, method: GradientMethod, trainer: FieldTrainer | None) -> dict:
+    def _plan(self, prepared: Prepared, method: GradientMethod, trainer: FieldTrainer | None,
+              choice: dict | None) -> dict:
         problem = prepared.problem
         width, height = problem.scene.resolution()
         return {
-            "method": self.spec.method.value,
+            "method": self.method_name,
+            "auto": choice,
             "realised_by": type(method).__name__,
             "fields": {"radiance": trainer is not None and trainer.radiance is not None,
                        "differential": trainer is not None and trainer.differential is not None},
@@ -268,7 +279,8 @@ class InverseRenderingRun:
 
     def _checkpoint(self, state: RunState, trainer: FieldTrainer | None) -> None:
         blob = checkpoint.dumps(spec=self.spec, next_iteration=state.next_iteration, parameters=state.parameters,
-                                adam=state.adam.state_dict(), trainer=None if trainer is None else trainer.state_dict())
+                                adam=state.adam.state_dict(), trainer=None if trainer is None else trainer.state_dict(),
+                                method=self.method_name)
         self.reporter.checkpoint(blob, state.next_iteration)
 
     def _outcome(self, status: str, state: RunState | None, started: float, error: str | None = None,

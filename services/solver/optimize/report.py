@@ -30,8 +30,9 @@ class RunReporter(Protocol):
         """Target image of every sensor, ``(H, W, 3)`` float32 linear RGB."""
 
     def progress(self, kind: str, payload: dict) -> None:
-        """Signs of life between iterations: ``warmup`` (steps done of planned, residual norms),
-        ``resumed`` (the iteration a resumed run continues from)."""
+        """Signs of life between iterations: ``auto`` (the trial of an ``auto`` job started:
+        its candidates), ``warmup`` (steps done of planned, residual norms), ``resumed`` (the
+        iteration a resumed run continues from)."""
 
     def iteration(self, record: IterationRecord, renders: dict[int, np.ndarray] | None,
                   gradients: dict[int, np.ndarray] | None) -> None:

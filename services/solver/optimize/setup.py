@@ -20,10 +20,11 @@ import numpy as np
 
 from schemas.errors import InvalidJob
 from schemas.job import BuiltinScene, ImageTargets, JobSpec
+from schemas.methods import AUTO, Method
 from services.solver.estimators.methods import method_class
 from services.solver.estimators.problem import Problem
 from services.solver.estimators.render import converged_depth, render
-from services.solver.scene.facts import probe_scene
+from services.solver.scene.facts import SceneFacts, probe_scene
 from services.solver.scene.load import LoadedScene, load_scene
 from services.solver.scene.params import ParameterSet
 from services.solver.scene.planner import plan_effects
@@ -51,6 +52,7 @@ class Prepared:
     targets: dict[int, np.ndarray]
     target_values: np.ndarray | None
     depths: dict = field(default_factory=dict)
+    facts: SceneFacts | None = None
 
 
 def load_job_scene(spec: JobSpec, scene_file: Path | None = None) -> LoadedScene:
@@ -162,12 +164,13 @@ def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None
 
 def prepare(spec: JobSpec, *, scene_file: Path | None = None, method: str | None = None) -> Prepared:
     """Load and check everything a job needs, plan the effects to simulate (for ``method``,
-    default the job's), and render synthetic targets (deep enough to have converged, unless the
-    job fixes ``targets.synthetic.max_depth``)."""
+    default the job's; ``prb``'s for an ``auto`` job until :func:`plan_for` names the choice), and
+    render synthetic targets (deep enough to have converged, unless the job fixes
+    ``targets.synthetic.max_depth``)."""
     c = check(spec, scene_file)
     problem = Problem(c.scene, c.parameters, delta_depth=spec.training.delta_depth)
     facts = probe_scene(c.scene, c.parameters, seed=derive_seed(spec.seed, "probe"), max_delta_depth=64)
-    name = method or spec.method
+    name = method or (Method.PRB if spec.method == AUTO else spec.method)
     problem.apply_plan(plan_effects(facts, name, method_class(name).uses, spec.effects, spec.training.delta_depth))
     for warning in problem.plan.warnings:
         log.warning("effect plan: %s", warning)
@@ -180,7 +183,16 @@ def prepare(spec: JobSpec, *, scene_file: Path | None = None, method: str | None
                                      seed=derive_seed(spec.seed, "target", sensor), max_depth=depths["target"])
     c.parameters.assign(c.init)
     log.info("prepared job: %d scalars, %d target(s)", c.parameters.n, len(targets))
-    return Prepared(spec, problem, c.init, c.lower, c.upper, targets, c.target_values, depths)
+    return Prepared(spec, problem, c.init, c.lower, c.upper, targets, c.target_values, depths, facts)
+
+
+def plan_for(prepared: Prepared, method: str) -> None:
+    """Re-plan the prepared problem's effects for ``method`` (the scene facts are kept: no probe)."""
+    if prepared.facts is None:
+        raise ValueError("plan_for needs the scene facts that prepare() measured")
+    spec = prepared.spec
+    prepared.problem.apply_plan(plan_effects(prepared.facts, method, method_class(method).uses, spec.effects,
+                                             spec.training.delta_depth))
 
 
 def _depths(spec: JobSpec, problem: Problem, c: Checked) -> dict:

@@ -125,6 +125,7 @@ export function jobView(root, jobId) {
       iteration: seen((event) => { state.records.set(event.iteration, event); state.job.iteration = event.iteration; }),
       checkpoint: seen((event) => { state.checkpoint = event.iteration; }),
       warmup: seen((event) => { state.warmup = event; }),
+      auto: seen((event) => { state.warmup = { auto: event.candidates }; }),
       resumed: seen((event) => {          // a new attempt recomputes the iterations after its checkpoint
         for (const k of [...state.records.keys()]) if (k >= event.iteration) state.records.delete(k);
         state.job.iteration = event.iteration - 1;
@@ -228,6 +229,11 @@ export function jobView(root, jobId) {
     const event = state.warmup;
     warmup.hidden = !event || records.length > 0 || job.status !== "running";
     if (warmup.hidden) return;
+    if (event.auto) {                   // method "auto": the trial that picks the method runs first
+      warmupBar.style.width = "0%";
+      warmupText.textContent = `Choosing the method: timing ${event.auto.join(", ")} on this scene`;
+      return;
+    }
     const fraction = event.planned ? Math.min(1, event.steps / event.planned) : 0;
     warmupBar.style.width = `${(100 * fraction).toFixed(1)}%`;
     warmupText.dataset.steps = String(event.steps);
@@ -239,7 +245,8 @@ export function jobView(root, jobId) {
     const count = done();
     stats.iteration.value.textContent = `${count} / ${job.iterations}`;
     stats.iteration.value.dataset.value = String(count);
-    stats.iteration.sub.textContent = job.method;
+    stats.iteration.sub.textContent = job.plan?.method && job.plan.method !== job.method
+      ? `${job.method}: ${job.plan.method}` : job.method;
     const last = records[records.length - 1];
     stats.loss.value.textContent = fmtNum(last ? last.loss : job.metrics?.loss, 4);
     stats.loss.sub.textContent = last && last.residual_primal !== undefined

@@ -3,7 +3,7 @@
 
 import { fmtNum, h } from "../dom.js";
 
-const FIRST = ["method", "fields", "effects", "warnings"];
+const FIRST = ["method", "auto", "fields", "effects", "warnings"];
 const INLINE_ITEMS = 16;
 
 function title(key) {

@@ -12,6 +12,7 @@ const METHODS = [
   ["radiance-cache", "Radiance cache: L_φ at the secondary hits, no indirect derivative"],
   ["direct", "Direct illumination only (no fields)"],
   ["prb", "Mitsuba's Path Replay Backpropagation (reference)"],
+  ["auto", "time prb, ndrf-lhs and ndrf-rhs on this scene, run the fastest (the plan says why)"],
 ];
 
 // [path, label, placeholder (the API default), help]
