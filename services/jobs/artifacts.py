@@ -112,8 +112,11 @@ class JobWriter:
 
     def checkpoint(self, state: bytes, next_iteration: int) -> None:
         self.guard()
-        self._put(self.files.key(JobFiles.CHECKPOINT), state)
+        # The info first: a resume drops records after the info's iteration and continues from the
+        # blob's. Killed between the two writes, an info ahead of the blob only means an iteration is
+        # recomputed (same seeds, its record overwritten); an info behind it lost that record.
         self._put(self.files.key(JobFiles.CHECKPOINT_INFO), _json({"next_iteration": next_iteration}))
+        self._put(self.files.key(JobFiles.CHECKPOINT), state)
         self.event("checkpoint", iteration=next_iteration)
 
     def should_stop(self):  # -> StopReason | None, as RunReporter declares
