@@ -4,6 +4,7 @@ sharing one store, each with its output in a log file. Loopback only."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -72,13 +73,21 @@ class Redis:
 
 
 class Process:
-    """``python -m cli.main ARGS`` (optionally under ``taskset``/``nice``), output in ``log``."""
+    """``python -m cli.main ARGS`` (optionally under ``taskset``), output in ``log``, in a session of
+    its own. ``nice`` lowers the priority of the process *and of its session's autogroup*: with
+    Linux's autogroup scheduling, sessions share the CPU fairly whatever their processes' nice, so
+    ``nice -n 19`` alone leaves a worker in its own session as loud as the API next to it."""
 
-    def __init__(self, args: list[str], env: dict[str, str], log: Path, prefix: list[str] | None = None):
+    def __init__(self, args: list[str], env: dict[str, str], log: Path, prefix: list[str] | None = None,
+                 nice: int = 0):
         self.args, self.log = args, log
-        self.proc = subprocess.Popen([*(prefix or []), sys.executable, "-m", "cli.main", *args], cwd=ROOT,
+        niced = ["nice", "-n", str(nice)] if nice else []
+        self.proc = subprocess.Popen([*(prefix or []), *niced, sys.executable, "-m", "cli.main", *args], cwd=ROOT,
                                      env={**os.environ, **env}, stdout=log.open("ab"), stderr=subprocess.STDOUT,
                                      start_new_session=True)
+        if nice > 0:  # without autogroup scheduling (no such file), nice alone does it
+            with contextlib.suppress(OSError):
+                Path(f"/proc/{self.proc.pid}/autogroup").write_text(f"{nice}\n")
 
     @property
     def pid(self) -> int:
@@ -139,8 +148,9 @@ def start_api(folder: Path, env: dict[str, str], port: int | None = None, prefix
     return proc, client
 
 
-def start_worker(folder: Path, env: dict[str, str], name: str, prefix: list[str] | None = None) -> Process:
-    return Process(["-v", "worker", "--name", name], env, folder / f"{name}.log", prefix)
+def start_worker(folder: Path, env: dict[str, str], name: str, prefix: list[str] | None = None,
+                 nice: int = 0) -> Process:
+    return Process(["-v", "worker", "--name", name], env, folder / f"{name}.log", prefix, nice=nice)
 
 
 def small_job(iterations: int = 20, seed: int = 1, **extra) -> dict:

@@ -16,7 +16,8 @@ Phases, each against the same API while two long jobs train:
 
 CPU placement (2 cores here): the API on core 0 (``taskset -c 0``), this load generator on core 1,
 the workers (and their jobs) on both cores at ``nice 19``, so the training soaks up idle time
-without taking it from the API or the clients. ``--api-processes N`` serves with
+without taking it from the API or the clients (the nice given to their sessions' autogroups too:
+:class:`bench.cluster.Process`). ``--api-processes N`` serves with
 ``ndrf serve --workers N`` (uvicorn processes on one port; the store and Redis are shared).
 """
 
@@ -73,10 +74,11 @@ class Load:
         except (OSError, ValueError, KeyError):
             return 0
 
-    async def stream(self, http: httpx.AsyncClient, job_id: str, delays: list[float], opened: list[int]) -> None:
-        """One SSE client: records the delay of every iteration event written while it is connected
-        (event ``time`` -> received). Events written before the response started are the replay
-        of what it missed while connecting (``Last-Event-ID``), not live delivery: not counted."""
+    async def stream(self, http: httpx.AsyncClient, job_id: str, delays: list[tuple], opened: list[int]) -> None:
+        """One SSE client: records ``(job, seq, written, received)`` for every iteration event written
+        while it is connected (``written`` is the event's ``time``, stamped by the worker). Events
+        written before the response started are the replay of what it missed while connecting
+        (``Last-Event-ID``), not live delivery: not counted."""
         try:
             after = str(self.last_seq(job_id))
             async with http.stream("GET", f"/v1/jobs/{job_id}/events", headers={"Last-Event-ID": after}) as resp:
@@ -92,11 +94,11 @@ class Load:
                     received = time.time()
                     written = datetime.fromisoformat(event["time"]).timestamp() if "time" in event else 0.0
                     if event.get("type") == "iteration" and written >= connected:
-                        delays.append(received - written)
+                        delays.append((job_id, int(event["seq"]), written, received))
         except (httpx.HTTPError, asyncio.CancelledError):
             return
 
-    async def open_streams(self, n: int, delays: list[float]) -> tuple[list[asyncio.Task], httpx.AsyncClient]:
+    async def open_streams(self, n: int, delays: list[tuple]) -> tuple[list[asyncio.Task], httpx.AsyncClient]:
         http = self.client(n + 10)
         opened: list[int] = []
         tasks = [asyncio.create_task(self.stream(http, self.training[i % len(self.training)], delays, opened))
@@ -168,7 +170,7 @@ async def scenario(base: str, training: list[str], store: Path, args) -> dict:
     log.info("phase: submit, no streams")
     report["submit_no_streams"] = percentiles(await load.submits(args.submits))
     log.info("phase: submit, %d streams", args.streams)
-    delays: list[float] = []
+    delays: list[tuple] = []
     tasks, http = await load.open_streams(args.streams, delays)
     report["streams_open"] = sum(not t.done() for t in tasks)
     report["submit_with_streams"] = percentiles(await load.submits(args.submits))
@@ -195,8 +197,28 @@ async def scenario(base: str, training: list[str], store: Path, args) -> dict:
         t.cancel()
     await asyncio.gather(*tasks, return_exceptions=True)
     await http.aclose()
-    report["sse"] = {"streams": args.sse, "iteration_delivery": percentiles(delays)}
+    report["sse"] = {"streams": args.sse, **delivery(delays, args.redis_url)}
     return report
+
+
+def delivery(delays: list[tuple], redis_url: str) -> dict:
+    """Delivery delays, whole and split where the event was published on the bus: the id Redis gave
+    the ``XADD`` is its clock at that moment (same machine), so ``written -> published`` is the
+    worker's share (its store write, fsync and scheduling) and ``published -> received`` the API's
+    (bus wake-up, store read, fan-out) and the client's."""
+    import redis
+
+    from services.queue.redis_queue import EVENTS
+
+    client = redis.Redis.from_url(redis_url)
+    published: dict[tuple[str, int], float] = {}
+    for job_id in {d[0] for d in delays}:
+        for entry_id, fields in client.xrange(EVENTS.format(job_id)):
+            published[(job_id, int(fields[b"seq"]))] = int(entry_id.split(b"-")[0]) / 1000
+    split = [(published[(j, q)] - w, r - published[(j, q)]) for j, q, w, r in delays if (j, q) in published]
+    return {"iteration_delivery": percentiles([r - w for _, _, w, r in delays]),
+            "written_to_published": percentiles([a for a, _ in split]),
+            "published_to_received": percentiles([b for _, b in split])}
 
 
 def run(args) -> dict:
@@ -211,7 +233,7 @@ def run(args) -> dict:
     try:
         api_proc, api = start_api(folder, env, prefix=api_cmd, extra=serve_args)
         processes.append(api_proc)
-        processes += [start_worker(folder, env, f"trainer{i}", prefix=["nice", "-n", "19"]) for i in range(2)]
+        processes += [start_worker(folder, env, f"trainer{i}", nice=19) for i in range(2)]
         training = []
         for i in range(2):
             status, body = api.request("POST", "/v1/jobs", small_job(iterations=2000, seed=i + 1, images_every=50,
@@ -231,6 +253,7 @@ def run(args) -> dict:
             return [(api.request("GET", f"/v1/jobs/{j}")[1] or {}).get("iteration") for j in training]
 
         before = iterations()
+        args.redis_url = redis.url
         report = asyncio.run(scenario(api.base, training, folder / "store", args))
         report["training_iterations"] = {"before": before, "after": iterations()}
         report["setup"] = {"api_processes": args.api_processes, "api_cpus": args.api_cpus,
@@ -262,7 +285,16 @@ def markdown(report: dict) -> str:
         row(f"status poll, {p['clients']} clients {label} (think {p['think_seconds']} s)", p["status_poll"],
             p["requests_per_second"])
         row(f"job list, same clients {label}", p["job_list"])
-    row(f"SSE iteration delivery, {report['sse']['streams']} streams", report["sse"]["iteration_delivery"])
+    sse = report["sse"]
+    row(f"SSE iteration delivery, {sse['streams']} streams: record written -> event received", sse["iteration_delivery"])
+    if "written_to_published" in sse:
+        row("of which: written -> published on the bus (worker)", sse["written_to_published"])
+        row("of which: published -> received (API, client)", sse["published_to_received"])
+    trained = report.get("training_iterations", {})
+    if trained.get("before") and trained.get("after"):
+        done = sum(a - b for a, b in zip(trained["after"], trained["before"], strict=True))
+        lines.append(f"\nMeanwhile the two training jobs ran {done} iterations in {s['seconds']} s "
+                     f"({done / max(s['seconds'], 1):.2f} per second).")
     return "\n".join(lines) + "\n"
 
 

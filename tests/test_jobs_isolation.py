@@ -4,13 +4,17 @@ description and goes on. Mitsuba is only ever loaded in the children here."""
 from __future__ import annotations
 
 import io
+import os
 import struct
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from services.jobs.frames import FrameError, array_bytes, array_from, read_frame, write_frame
-from services.jobs.isolation import ChildFailed, ChildLimits, exchange
+from services.jobs.isolation import ROOT, ChildFailed, ChildLimits, exchange
 
 PLY_OVERFLOW_HEADER = (b"ply\nformat binary_little_endian 1.0\nelement vertex 4294967297\nproperty float x\n"
                        b"property float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\n"
@@ -100,3 +104,20 @@ def test_a_job_canceled_as_its_process_starts_is_canceled_not_crashed(tmp_path):
     runner = AttemptRunner(states, Limits(), tmp_path / "scratch")
     result = runner.run(job_id, "w#1", lost=threading.Event(), stop=lambda: "canceled")
     assert result.status == "canceled" and states.get(job_id).status is JobStatus.CANCELED
+
+
+@pytest.mark.skipif(not Path("/proc/self/autogroup").exists(), reason="no autogroup scheduling on this kernel")
+def test_a_child_in_a_new_session_keeps_the_niceness_of_a_niced_worker():
+    """With autogroup scheduling, a new session starts at nice 0 whatever its process's nice: a
+    worker run at ``nice 19`` would start jobs as loud as the API beside it. ``apply_limits`` (first
+    thing in every child) hands the child's nice to its session."""
+    probe = ("import os, json; os.nice(7); from services.jobs.isolation import apply_limits, ChildLimits;"
+             "from dataclasses import asdict; apply_limits(asdict(ChildLimits()));"
+             "print(open('/proc/self/autogroup').read().split()[-1])")
+    done = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, timeout=60,
+                          start_new_session=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "7"
+    unniced = subprocess.run([sys.executable, "-c", probe.replace("os.nice(7); ", "")], cwd=ROOT, capture_output=True,
+                             text=True, timeout=60, start_new_session=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert unniced.stdout.strip() == "0"                      # a worker at nice 0: nothing changed

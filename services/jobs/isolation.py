@@ -9,6 +9,9 @@ scene is only ever loaded in a child process started here (``python -m services.
   (the child talks to its parent only, over its stdin/stdout pipes);
 * its own process group, and ``PR_SET_PDEATHSIG``: it dies with the parent, and the parent kills
   it with everything it started;
+* its parent's priority: a new session is a new scheduler autogroup on Linux, which would
+  otherwise give the child a full share next to an API on the same cores, whatever ``nice`` the
+  worker was started with (:func:`keep_priority`);
 * its stderr is kept (the tail names the file Mitsuba was loading when it crashed).
 
 A child that dies by a signal, runs out of memory or time is described by :func:`describe_exit`
@@ -72,12 +75,30 @@ def apply_limits(limits: dict) -> None:
         pass
     if os.getppid() == 1:  # the parent died before PDEATHSIG was set
         os._exit(1)
+    keep_priority()
     resource.setrlimit(resource.RLIMIT_AS, (limits["memory_bytes"], limits["memory_bytes"]))
     resource.setrlimit(resource.RLIMIT_NOFILE, (limits["open_files"], limits["open_files"]))
     resource.setrlimit(resource.RLIMIT_FSIZE, (limits["file_bytes"], limits["file_bytes"]))
     resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
     if limits.get("cpu_seconds") is not None:
         resource.setrlimit(resource.RLIMIT_CPU, (limits["cpu_seconds"], limits["cpu_seconds"] + 5))
+
+
+def keep_priority(pid: int | str = "self") -> None:
+    """Give the session led by ``pid`` (a child started with ``start_new_session``) the niceness
+    of that process.
+
+    With ``kernel.sched_autogroup_enabled`` (the default on most distributions) CPU time is shared
+    fairly between *sessions* first, and ``nice`` only orders processes inside one. A worker run
+    with ``nice -n 19`` so that it soaks up idle CPU next to an API would start its jobs in new
+    sessions at the autogroup's default nice 0: each one as loud as the API. Raising an autogroup's
+    nice needs no privilege; where there is no autogroup (or no ``/proc``) this does nothing.
+    """
+    target = os.getpid() if pid == "self" else int(pid)
+    nice = os.getpriority(os.PRIO_PROCESS, target)
+    if nice > 0:
+        with contextlib.suppress(OSError):
+            Path(f"/proc/{pid}/autogroup").write_text(f"{nice}\n")
 
 
 class Child:
