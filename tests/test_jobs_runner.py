@@ -8,10 +8,12 @@ import pytest
 
 from schemas.job import JobSpec
 from schemas.records import JobStatus
+from services.jobs.artifacts import JobWriter
 from services.jobs.runner import AttemptRunner
 from services.jobs.service import JobService
 from services.queue.local import LocalEventBus, LocalJobQueue
 from services.settings import Limits
+from services.store.job import JobFiles
 from services.store.local import FolderStore
 from tests.service import small_job
 
@@ -59,3 +61,45 @@ def test_a_job_over_its_wall_clock_fails_naming_the_setting(claimed):
     result = runner(job_seconds=1.0).run(job_id, "w#1", lost=threading.Event(), stop=lambda: None)
     assert result.status == "failed"
     assert "NDRF_MAX_JOB_SECONDS" in service.states.get(job_id).error
+
+
+class _Killed(BaseException):
+    """The process died here (nothing after this write happens)."""
+
+
+class _DiesInTheSecondCheckpoint(FolderStore):
+    """A folder store whose process is killed between the two writes of the second checkpoint
+    (after the first of them, whichever it is)."""
+
+    def __init__(self, root):
+        super().__init__(root)
+        self.writes = 0
+
+    def put(self, key, data, *args, **kwargs):
+        if key.endswith((JobFiles.CHECKPOINT, JobFiles.CHECKPOINT_INFO)):
+            self.writes += 1
+            if self.writes == 4:
+                raise _Killed(key)
+        return super().put(key, data, *args, **kwargs)
+
+
+def test_a_kill_between_the_checkpoint_writes_loses_no_iteration_record(tmp_path):
+    """The checkpoint is two objects (its info and the state). Killed between them, the resumed
+    attempt must keep every record the state it continues from will not recompute: iterations
+    0..2 were recorded and the second checkpoint (next iteration 3) died half written: whichever
+    half was written, the records the resumed attempt will not recompute must all be there."""
+    store = _DiesInTheSecondCheckpoint(tmp_path / "store")
+    service = JobService(store, LocalJobQueue(), LocalEventBus())
+    record, _ = service.submit(JobSpec.model_validate(small_job("direct", iterations=5)))
+    service.states.transition(record.id, JobStatus.RUNNING, attempt="w#1")
+    writer = JobWriter(service.states, record.id, attempt="w#1")
+    files = service.states.files(record.id)
+    for k in range(3):
+        files.store.put(files.iteration_key(k), b'{"iteration": %d}' % k)
+        if k == 0:
+            writer.checkpoint(b"state, next iteration 1", next_iteration=1)
+    with pytest.raises(_Killed):
+        writer.checkpoint(b"state, next iteration 3", next_iteration=3)
+    resumed_from = files.resume_checkpoint()
+    continues_at = int(resumed_from.decode().rsplit(" ", 1)[1])
+    assert set(range(continues_at)) <= set(files.iterations()), (continues_at, files.iterations())

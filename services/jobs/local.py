@@ -62,9 +62,7 @@ def run_local(spec: JobSpec, out: Path, *, base_dir: Path | None = None, resume:
     except InvalidJob as exc:
         writer.finish({"status": "failed", "iterations": 0, "seconds": 0.0, "error": str(exc), "field": exc.field})
         return files.read(JobFiles.SUMMARY)
-    checkpoint = files.store.get(files.key(JobFiles.CHECKPOINT)) if resume else None
-    if checkpoint is not None:
-        files.drop_iterations_after(int((files.read(JobFiles.CHECKPOINT_INFO) or {}).get("next_iteration", 0)) - 1)
+    checkpoint = files.resume_checkpoint() if resume else None
     outcome = InverseRenderingRun(spec, writer, scene_file=scene_file, resume=checkpoint).execute()
     writer.finish(outcome)
     summary = files.read(JobFiles.SUMMARY) or {"status": outcome.status, "iterations": outcome.iterations}

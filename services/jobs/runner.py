@@ -81,13 +81,11 @@ class AttemptRunner:
             scene_file = stage_scene(spec.scene, folder / "scene", upload_limits(self.limits))
         except InvalidJob as exc:
             return self._fail(writer, str(exc), exc.field)
-        resume = files.store.get(files.key(JobFiles.CHECKPOINT))
+        resume = files.resume_checkpoint()
         resume_file = None
         if resume is not None:
             resume_file = folder / "resume.pt"
             resume_file.write_bytes(resume)
-            saved = files.read(JobFiles.CHECKPOINT_INFO, {}) or {}
-            files.drop_iterations_after(int(saved.get("next_iteration", 0)) - 1)
         limits = ChildLimits(memory_bytes=self.limits.child_memory_bytes, wall_seconds=self.limits.job_seconds)
         child = Child("run", limits, folder, label=f"job-{job_id}")
         frames: queue.Queue = queue.Queue(maxsize=4)

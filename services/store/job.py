@@ -71,6 +71,17 @@ class JobFiles:
     def iteration_record(self, k: int) -> dict | None:
         return self.store.get_json(self.iteration_key(k))
 
+    def resume_checkpoint(self) -> bytes | None:
+        """The checkpoint a resumed attempt continues from (None: start over), with the records it
+        will recompute forgotten: those after ``checkpoint.json``'s ``next_iteration``. The info is
+        written before the checkpoint (:meth:`services.jobs.artifacts.JobWriter.checkpoint`), so a
+        kill between the two leaves it ahead of the checkpoint, never behind: every record the
+        checkpoint does not recompute is kept."""
+        checkpoint = self.store.get(self.key(self.CHECKPOINT))
+        if checkpoint is not None:
+            self.drop_iterations_after(int((self.read(self.CHECKPOINT_INFO) or {}).get("next_iteration", 0)) - 1)
+        return checkpoint
+
     def drop_iterations_after(self, k: int) -> None:
         """Forget records newer than iteration ``k`` (a resumed run recomputes them)."""
         for j in self.iterations():
