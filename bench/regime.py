@@ -2,6 +2,7 @@
 
 ``python -m bench.regime [--iterations N] [--variants a,b] [--out bench/results/regime.json]``
 ``python -m bench.regime --check-loss``: how well each end point fits the target (see :func:`check_loss`)
+``python -m bench.regime --plot A.json B.json --out F.png``: error against seconds, a panel per file
 
 The job (``examples/bright-room.json``): the closed ``hidden-object`` room with its walls at
 albedo 0.95 to recover (from 0.5) together with the hidden sphere's albedo, so light paths are
@@ -32,6 +33,13 @@ Variants:
 ``ndrf-lhs``            NDRF, camera-hit query, the path-traced candidate at the converged depth
 ``ndrf-lhs-field``      NDRF with the field candidate on cached first hits (no path tracing per
                         iteration: its cost does not depend on the path length)
+``ndrf-lhs-field-gauss-newton``  the same with Gauss-Newton steps
+``ndrf-lhs-field-steps-4``  the field candidate with half the training: 100 warm-up steps, 4 per iteration
+``ndrf-lhs-field-steps-4-gauss-newton``  the same with Gauss-Newton steps
+``prb-spp-N``           prb with N (1, 4, 16) spp for the candidate and the adjoint pass
+
+``--job examples/room-closed-8.json`` (or ``room-open-8.json``) runs the variants on the multi-view
+rooms instead: 8 views of 128x128, 6 scalars, 120 iterations, 1 spp by default.
 """
 
 from __future__ import annotations
@@ -69,6 +77,16 @@ VARIANTS: dict[str, dict] = {
     "ndrf-lhs-gauss-newton-160": {"method": "ndrf-lhs", "optimizer": "gauss-newton", "iterations": 160},
     "ndrf-lhs": {"method": "ndrf-lhs"},
     "ndrf-lhs-field": {"method": "ndrf-lhs", "render": {"candidate": "field", "first_hits": "cached"}},
+    "ndrf-lhs-field-gauss-newton": {"method": "ndrf-lhs", "optimizer": "gauss-newton",
+                                    "render": {"candidate": "field", "first_hits": "cached"}},
+    "ndrf-lhs-field-steps-4": {"method": "ndrf-lhs", "render": {"candidate": "field", "first_hits": "cached"},
+                               "training": {"warmup_steps": 100, "steps_per_iteration": 4}},
+    "ndrf-lhs-field-steps-4-gauss-newton": {"method": "ndrf-lhs", "optimizer": "gauss-newton",
+                                            "render": {"candidate": "field", "first_hits": "cached"},
+                                            "training": {"warmup_steps": 100, "steps_per_iteration": 4}},
+    "prb-spp-1": {"method": "prb", "render": {"spp": 1, "gradient_spp": 1}},
+    "prb-spp-4": {"method": "prb", "render": {"spp": 4, "gradient_spp": 4}},
+    "prb-spp-16": {"method": "prb", "render": {"spp": 16, "gradient_spp": 16}},
 }
 
 
@@ -79,7 +97,9 @@ def _merge(base: dict, change: dict) -> dict:
     return out
 
 
-def run_variant(job: dict, target_error: float) -> dict:
+def run_variant(job: dict, target_error: float, budget: float | None = None) -> dict:
+    """One whole job; with ``budget``, stopped (as a cancel: with its records) after that many
+    seconds of wall clock, for variants too slow to run to the end of the job's schedule."""
     from schemas.job import JobSpec
     from services.jobs.local import run_local
     from services.store.job import JobFiles
@@ -87,7 +107,11 @@ def run_variant(job: dict, target_error: float) -> dict:
 
     with tempfile.TemporaryDirectory() as tmp:
         started = time.perf_counter()
-        summary = run_local(JobSpec.model_validate(job), Path(tmp) / "job")
+
+        def over_budget() -> str | None:
+            return "canceled" if budget is not None and time.perf_counter() - started > budget else None
+
+        summary = run_local(JobSpec.model_validate(job), Path(tmp) / "job", should_stop=over_budget)
         wall = time.perf_counter() - started
         files = JobFiles(FolderStore(tmp), "job")
         records = [files.iteration_record(k) for k in files.iterations()]
@@ -100,11 +124,21 @@ def run_variant(job: dict, target_error: float) -> dict:
         curve.append({"iteration": record["iteration"], "seconds": elapsed, "error": error})
     reached = next((c for c in curve if c["error"] < target_error), None)
     per_iteration = [b["seconds"] - a["seconds"] for a, b in zip(curve, curve[1:], strict=False)]
-    return {"status": summary["status"], "final": summary["final"], "target": summary["target"],
+    phases = {name: float(np.median([r["seconds"].get(name, 0.0) for r in records[1:]]))
+              for name in (records[-1]["seconds"] if len(records) > 1 else {})}
+    return {"phases": phases, "status": summary["status"], "final": summary["final"], "target": summary["target"],
             "wall_seconds": wall, "seconds_per_iteration": float(np.median(per_iteration)) if per_iteration else None,
             "first_iteration_seconds": curve[0]["seconds"] if curve else None,
             "reached": reached, "final_error": curve[-1]["error"] if curve else None, "curve": curve,
             "depths": depths}
+
+
+def settled(curve: list[dict], target_error: float) -> dict | None:
+    """The first point of ``curve`` after which the error stays below ``target_error`` to the end."""
+    for i, point in enumerate(curve):
+        if all(c["error"] < target_error for c in curve[i:]):
+            return point
+    return None
 
 
 def table(results: dict, target_error: float) -> str:
@@ -112,11 +146,15 @@ def table(results: dict, target_error: float) -> str:
 
     rows = []
     for name, r in results.items():
-        reached = r["reached"]
+        reached, stays = r["reached"], settled(r["curve"], target_error)
         rows.append([name, f"{r['first_iteration_seconds']:.1f}", f"{r['seconds_per_iteration']:.2f}",
                      f"{reached['iteration']} ({reached['seconds']:.0f} s)" if reached else "not reached",
-                     f"{r['final_error']:.3f}", f"{r['wall_seconds']:.0f}"])
+                     f"{stays['iteration']} ({stays['seconds']:.0f} s)" if stays else "-",
+                     f"{r['final_error']:.3f}" + (f" (stopped by --budget after {len(r['curve'])} iterations)"
+                                                  if r.get("status") == "canceled" else ""),
+                     f"{r['wall_seconds']:.0f}"])
     return markdown_table(["variant", "iteration 0 s (warm-up)", "s / iteration", f"error < {target_error} at",
+                           "and stays below from",
                            "final max error", "job wall s"], rows)
 
 
@@ -145,24 +183,57 @@ def check_loss(path: Path, spp: int = 256) -> str:
     return markdown_table(["end point", f"MSE to the target ({spp} spp)", "Var(y)", "MSE - Var(y)"], rows)
 
 
+def plot(paths: list[Path], out: Path, target_error: float = 0.02) -> None:
+    """Max parameter error against seconds (warm-up included): one panel per job, every variant of
+    the result files of that job in it."""
+    from bench.report import pyplot, save
+
+    plt = pyplot()
+    jobs: dict[str, dict] = {}
+    for path in paths:
+        saved = json.loads(path.read_text())
+        jobs.setdefault(saved["job"].get("name", path.stem), {}).update(saved["results"])
+    fig, axes = plt.subplots(1, len(jobs), figsize=(5.6 * len(jobs), 4.4), squeeze=False)
+    for ax, (title, results) in zip(axes[0], jobs.items(), strict=True):
+        for name, r in results.items():
+            ax.plot([c["seconds"] for c in r["curve"]], [c["error"] for c in r["curve"]], label=name,
+                    ls="-" if name.startswith("ndrf") else "--")
+        ax.axhline(target_error, color="grey", lw=0.8)
+        ax.set_yscale("log")
+        ax.set_title(title.split(",")[0], fontsize=9)
+        ax.set_xlabel("seconds (warm-up and iterations)")
+        ax.set_ylabel("max parameter error")
+        ax.grid(True, which="both", alpha=0.25)
+        ax.legend(fontsize=7)
+    save(fig, out)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m bench.regime", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--job", type=Path, default=JOB, help="the job file (default examples/bright-room.json)")
     parser.add_argument("--iterations", type=int, default=None, help="override the job's iterations")
     parser.add_argument("--variants", default=",".join(VARIANTS), help=f"subset of {', '.join(VARIANTS)}")
     parser.add_argument("--target-error", type=float, default=0.02)
+    parser.add_argument("--budget", type=float, default=None,
+                        help="stop each variant after this many wall-clock seconds (its records so far are kept)")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "regime.json")
+    parser.add_argument("--plot", type=Path, nargs="+", default=None,
+                        help="instead of running: draw error against seconds from these result files into --out (.png)")
     parser.add_argument("--check-loss", action="store_true",
                         help="instead of running: the image error at the truth and at the end points in --out")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    if args.plot:
+        plot(args.plot, args.out.with_suffix(".png"), args.target_error)
+        return
     if args.check_loss:
         text = check_loss(args.out)
         args.out.with_name(args.out.stem + "-loss.md").write_text(
             f"Command: `python -m bench.regime --check-loss`\n\n{text}\n")
         log.info("\n%s", text)
         return
-    base = json.loads(JOB.read_text())
+    base = json.loads(args.job.read_text())
     if args.iterations:
         base["iterations"] = args.iterations
     results = {}
@@ -170,7 +241,7 @@ def main(argv: list[str] | None = None) -> None:
         if name not in VARIANTS:
             parser.error(f"unknown variant {name!r}; known: {', '.join(VARIANTS)}")
         log.info("regime: %s", name)
-        results[name] = run_variant(_merge(base, VARIANTS[name]), args.target_error)
+        results[name] = run_variant(_merge(base, VARIANTS[name]), args.target_error, args.budget)
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps({"job": base, "target_error": args.target_error, "results": results},
                                        indent=1))

@@ -22,6 +22,18 @@ def test_builtin_scenes_load_with_their_parameters(mi):
         assert key in keys, (name, keys)
 
 
+def test_the_multi_view_rooms_have_eight_cameras_and_differ_by_the_front_wall(mi):
+    from services.solver.scene.load import load_scene
+    from services.solver.scene.params import differentiable_parameters
+
+    closed, opened = load_scene(builtin="room-closed-8"), load_scene(builtin="room-open-8")
+    for scene in (closed, opened):
+        assert scene.sensor_count == 8 and all(scene.resolution(i) == (128, 128) for i in range(8))
+        keys = [p.key for p in differentiable_parameters(scene.params)]
+        assert {"walls.reflectance.value", "ball.reflectance.value"} <= set(keys), keys
+    assert len(closed.scene.shapes()) == len(opened.scene.shapes()) + 1
+
+
 def test_staged_upload_with_include_and_mesh_relative_to_it(mi, tmp_path):
     from schemas.job import XmlScene
     from services.solver.scene.load import load_scene

@@ -14,10 +14,14 @@ declared at the top level and referenced by the shapes, so parameter keys read a
                     glossy reflections of the walls, and a roughness to optimize.
 ``closet-box``      The Cornell box with a closed cube hiding a sphere: its parameters cannot change
                     the image (the planner drops them).
+``room-closed-8``   The ``hidden-object`` room with a sphere in sight (``ball.reflectance.value``) and
+                    8 cameras of 128x128 around it: a multi-view job with long light paths.
+``room-open-8``     The same room without its front wall: light escapes, paths are shorter.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 from schemas.scenes import BUILTIN_SCENES
@@ -33,22 +37,13 @@ def cornell_box() -> dict:
     return mi.cornell_box()
 
 
-def hidden_object() -> dict:
-    mi = use_mitsuba()
+def _room(mi, open_front: bool = False) -> dict:
+    """The walls (``walls.reflectance.value``) and ceiling light of the rooms: x and y in [-1, 1],
+    z in [-1, 1.5]; without the front wall (z = 1.5) if ``open_front``."""
     T = mi.ScalarTransform4f
     grey = {"type": "ref", "id": "walls"}
-    depth = 1.25  # the room spans z in [-1, 1.5]; the camera looks down -z from z = 0.7
-    return {
-        "type": "scene",
-        "integrator": {"type": "path", "max_depth": 12},
-        "sensor": {
-            "type": "perspective",
-            "fov": 70.0,
-            "to_world": T().look_at(origin=[0, 0.1, 0.7], target=[0, -0.1, -1], up=[0, 1, 0]),
-            "film": {"type": "hdrfilm", "width": 64, "height": 64, "rfilter": {"type": "box"}},
-        },
-        "walls": _diffuse([0.5, 0.5, 0.5]),
-        "hidden": _diffuse([0.8, 0.35, 0.1]),
+    depth = 1.25
+    room = {
         "floor": {"type": "rectangle", "bsdf": grey,
                   "to_world": T().translate([0, -1, 0.25]).rotate([1, 0, 0], -90).scale([1, depth, 1])},
         "ceiling": {"type": "rectangle", "bsdf": grey,
@@ -66,9 +61,61 @@ def hidden_object() -> dict:
             "bsdf": grey,
             "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [40.0, 40.0, 40.0]}},
         },
+    }
+    if open_front:
+        del room["front"]
+    return room
+
+
+def hidden_object() -> dict:
+    mi = use_mitsuba()
+    T = mi.ScalarTransform4f
+    return {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 12},
+        "sensor": {  # the camera looks down -z from z = 0.7: the sphere at z = 1.05 is behind it
+            "type": "perspective",
+            "fov": 70.0,
+            "to_world": T().look_at(origin=[0, 0.1, 0.7], target=[0, -0.1, -1], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": 64, "height": 64, "rfilter": {"type": "box"}},
+        },
+        "walls": _diffuse([0.5, 0.5, 0.5]),
+        "hidden": _diffuse([0.8, 0.35, 0.1]),
+        **_room(mi),
         "hidden-sphere": {"type": "sphere", "center": [0, -0.55, 1.05], "radius": 0.4,
                           "bsdf": {"type": "ref", "id": "hidden"}},
     }
+
+
+def _multi_view_room(open_front: bool, views: int = 8) -> dict:
+    """The room of ``hidden-object`` with a sphere in sight (``ball.reflectance.value``) and
+    ``views`` cameras (128x128) on an ellipse around it, each looking across the room past the
+    sphere, so every view sees walls, floor or ceiling and the sphere from another side."""
+    mi = use_mitsuba()
+    T = mi.ScalarTransform4f
+    scene: dict = {"type": "scene", "integrator": {"type": "path", "max_depth": 12},
+                   "walls": _diffuse([0.5, 0.5, 0.5]), "ball": _diffuse([0.8, 0.2, 0.1])}
+    for k in range(views):
+        angle = 2 * math.pi * (k + 0.5) / views
+        c, s = math.cos(angle), math.sin(angle)
+        scene[f"sensor-{k}"] = {
+            "type": "perspective", "fov": 75.0,
+            "to_world": T().look_at(origin=[0.8 * c, 0.35, 0.25 + 1.05 * s],
+                                    target=[-0.35 * c, -0.55, 0.25 - 0.45 * s], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": 128, "height": 128, "rfilter": {"type": "box"}},
+        }
+    scene.update(_room(mi, open_front=open_front))
+    scene["ball-sphere"] = {"type": "sphere", "center": [0, -0.6, 0.25], "radius": 0.4,
+                            "bsdf": {"type": "ref", "id": "ball"}}
+    return scene
+
+
+def room_closed_8() -> dict:
+    return _multi_view_room(open_front=False)
+
+
+def room_open_8() -> dict:
+    return _multi_view_room(open_front=True)
 
 
 def mirror_box() -> dict:
@@ -114,6 +161,8 @@ FACTORIES: dict[str, Callable[[], dict]] = {
     "mirror-box": mirror_box,
     "glossy-box": glossy_box,
     "closet-box": closet_box,
+    "room-closed-8": room_closed_8,
+    "room-open-8": room_open_8,
 }
 if set(FACTORIES) != set(BUILTIN_SCENES):  # the catalogue and the factories must name the same scenes
     raise ImportError(f"built-in scenes differ: {sorted(set(FACTORIES) ^ set(BUILTIN_SCENES))}")
