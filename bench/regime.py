@@ -36,6 +36,7 @@ Variants:
 ``ndrf-lhs-field-gauss-newton``  the same with Gauss-Newton steps
 ``ndrf-lhs-field-steps-4``  the field candidate with half the training: 100 warm-up steps, 4 per iteration
 ``ndrf-lhs-field-steps-4-gauss-newton``  the same with Gauss-Newton steps
+``ndrf-lhs-field-steps-2[-gauss-newton]``  a quarter of the training: 50 warm-up steps, 2 per iteration
 ``prb-spp-N``           prb with N (1, 4, 16) spp for the candidate and the adjoint pass
 
 ``--job examples/room-closed-8.json`` (or ``room-open-8.json``) runs the variants on the multi-view
@@ -84,6 +85,11 @@ VARIANTS: dict[str, dict] = {
     "ndrf-lhs-field-steps-4-gauss-newton": {"method": "ndrf-lhs", "optimizer": "gauss-newton",
                                             "render": {"candidate": "field", "first_hits": "cached"},
                                             "training": {"warmup_steps": 100, "steps_per_iteration": 4}},
+    "ndrf-lhs-field-steps-2": {"method": "ndrf-lhs", "render": {"candidate": "field", "first_hits": "cached"},
+                               "training": {"warmup_steps": 50, "steps_per_iteration": 2}},
+    "ndrf-lhs-field-steps-2-gauss-newton": {"method": "ndrf-lhs", "optimizer": "gauss-newton",
+                                            "render": {"candidate": "field", "first_hits": "cached"},
+                                            "training": {"warmup_steps": 50, "steps_per_iteration": 2}},
     "prb-spp-1": {"method": "prb", "render": {"spp": 1, "gradient_spp": 1}},
     "prb-spp-4": {"method": "prb", "render": {"spp": 4, "gradient_spp": 4}},
     "prb-spp-16": {"method": "prb", "render": {"spp": 16, "gradient_spp": 16}},
