@@ -19,8 +19,9 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
 from pathlib import Path
+
+from bench.common import chosen, write_markdown
 
 log = logging.getLogger(__name__)
 
@@ -108,17 +109,14 @@ def main(argv: list[str] | None = None) -> None:
     from bench.regime import _merge
 
     cells = {}
-    for name in [c.strip() for c in args.cells.split(",") if c.strip()]:
-        if name not in CELLS:
-            parser.error(f"unknown cell {name!r}; known: {', '.join(CELLS)}")
+    for name in chosen(args.cells, CELLS, parser, "cell"):
         path, change = CELLS[name]
         log.info("auto bench: cell %s", name)
         cells[name] = run_cell(_merge(json.loads((ROOT / path).read_text()), change), args.target_error)
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps({"target_error": args.target_error, "cells": cells}, indent=1))
     text = table(cells, args.target_error)
-    command = " ".join(sys.argv[1:] if argv is None else argv)
-    args.out.with_suffix(".md").write_text(f"Command: `python -m bench.auto {command}`\n\n{text}\n")
+    write_markdown(args.out, "bench.auto", argv, text)
     log.info("\n%s", text)
 
 

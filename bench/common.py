@@ -95,3 +95,22 @@ def markdown_table(header: list[str], rows: list[list]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]
     return "\n".join(lines)
+
+
+def chosen(names: str, known, parser, what: str) -> list[str]:
+    """The comma-separated ``names`` of a command line, each one of ``known`` (else a usage error
+    that lists them)."""
+    picked = [n.strip() for n in names.split(",") if n.strip()]
+    for name in picked:
+        if name not in known:
+            parser.error(f"unknown {what} {name!r}; known: {', '.join(known)}")
+    return picked
+
+
+def write_markdown(out, module: str, argv: list[str] | None, text: str) -> None:
+    """``out`` with suffix ``.md``: the command that made it (``python -m module ARGS``), then ``text``."""
+    import sys
+    from pathlib import Path
+
+    command = " ".join(sys.argv[1:] if argv is None else argv)
+    Path(out).with_suffix(".md").write_text(f"Command: `python -m {module} {command}`\n\n{text}\n")

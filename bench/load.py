@@ -163,7 +163,7 @@ class Load:
         return out
 
 
-async def scenario(base: str, training: list[str], store: Path, args) -> dict:
+async def scenario(base: str, training: list[str], store: Path, redis_url: str, args) -> dict:
     load = Load(base, training, store)
     report: dict = {}
     # submissions without streams, with polls going on (a light background)
@@ -197,7 +197,7 @@ async def scenario(base: str, training: list[str], store: Path, args) -> dict:
         t.cancel()
     await asyncio.gather(*tasks, return_exceptions=True)
     await http.aclose()
-    report["sse"] = {"streams": args.sse, **delivery(delays, args.redis_url)}
+    report["sse"] = {"streams": args.sse, **delivery(delays, redis_url)}
     return report
 
 
@@ -253,8 +253,7 @@ def run(args) -> dict:
             return [(api.request("GET", f"/v1/jobs/{j}")[1] or {}).get("iteration") for j in training]
 
         before = iterations()
-        args.redis_url = redis.url
-        report = asyncio.run(scenario(api.base, training, folder / "store", args))
+        report = asyncio.run(scenario(api.base, training, folder / "store", redis.url, args))
         report["training_iterations"] = {"before": before, "after": iterations()}
         report["setup"] = {"api_processes": args.api_processes, "api_cpus": args.api_cpus,
                            "generator_cpus": args.generator_cpus, "workers": "2 x nice 19, any cpu",

@@ -48,17 +48,21 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from bench.common import chosen, write_markdown
+
 log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parent.parent
 JOB = ROOT / "examples" / "bright-room.json"
+
+#: the candidate from L_phi at cached first hits (no path tracing per iteration)
+FIELD = {"candidate": "field", "first_hits": "cached"}
 
 #: name -> changes to the job file
 VARIANTS: dict[str, dict] = {
@@ -77,18 +81,15 @@ VARIANTS: dict[str, dict] = {
     "prb-gauss-newton-constant": {"method": "prb", "optimizer": "gauss-newton", "final_learning_rate_ratio": 1.0},
     "ndrf-lhs-gauss-newton-160": {"method": "ndrf-lhs", "optimizer": "gauss-newton", "iterations": 160},
     "ndrf-lhs": {"method": "ndrf-lhs"},
-    "ndrf-lhs-field": {"method": "ndrf-lhs", "render": {"candidate": "field", "first_hits": "cached"}},
-    "ndrf-lhs-field-gauss-newton": {"method": "ndrf-lhs", "optimizer": "gauss-newton",
-                                    "render": {"candidate": "field", "first_hits": "cached"}},
-    "ndrf-lhs-field-steps-4": {"method": "ndrf-lhs", "render": {"candidate": "field", "first_hits": "cached"},
+    "ndrf-lhs-field": {"method": "ndrf-lhs", "render": FIELD},
+    "ndrf-lhs-field-gauss-newton": {"method": "ndrf-lhs", "optimizer": "gauss-newton", "render": FIELD},
+    "ndrf-lhs-field-steps-4": {"method": "ndrf-lhs", "render": FIELD,
                                "training": {"warmup_steps": 100, "steps_per_iteration": 4}},
-    "ndrf-lhs-field-steps-4-gauss-newton": {"method": "ndrf-lhs", "optimizer": "gauss-newton",
-                                            "render": {"candidate": "field", "first_hits": "cached"},
+    "ndrf-lhs-field-steps-4-gauss-newton": {"method": "ndrf-lhs", "optimizer": "gauss-newton", "render": FIELD,
                                             "training": {"warmup_steps": 100, "steps_per_iteration": 4}},
-    "ndrf-lhs-field-steps-2": {"method": "ndrf-lhs", "render": {"candidate": "field", "first_hits": "cached"},
+    "ndrf-lhs-field-steps-2": {"method": "ndrf-lhs", "render": FIELD,
                                "training": {"warmup_steps": 50, "steps_per_iteration": 2}},
-    "ndrf-lhs-field-steps-2-gauss-newton": {"method": "ndrf-lhs", "optimizer": "gauss-newton",
-                                            "render": {"candidate": "field", "first_hits": "cached"},
+    "ndrf-lhs-field-steps-2-gauss-newton": {"method": "ndrf-lhs", "optimizer": "gauss-newton", "render": FIELD,
                                             "training": {"warmup_steps": 50, "steps_per_iteration": 2}},
     "prb-spp-1": {"method": "prb", "render": {"spp": 1, "gradient_spp": 1}},
     "prb-spp-4": {"method": "prb", "render": {"spp": 4, "gradient_spp": 4}},
@@ -243,17 +244,14 @@ def main(argv: list[str] | None = None) -> None:
     if args.iterations:
         base["iterations"] = args.iterations
     results = {}
-    for name in [v.strip() for v in args.variants.split(",") if v.strip()]:
-        if name not in VARIANTS:
-            parser.error(f"unknown variant {name!r}; known: {', '.join(VARIANTS)}")
+    for name in chosen(args.variants, VARIANTS, parser, "variant"):
         log.info("regime: %s", name)
         results[name] = run_variant(_merge(base, VARIANTS[name]), args.target_error, args.budget)
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps({"job": base, "target_error": args.target_error, "results": results},
                                        indent=1))
     text = table(results, args.target_error)
-    command = " ".join(sys.argv[1:] if argv is None else argv)
-    args.out.with_suffix(".md").write_text(f"Command: `python -m bench.regime {command}`\n\n{text}\n")
+    write_markdown(args.out, "bench.regime", argv, text)
     log.info("\n%s", text)
 
 

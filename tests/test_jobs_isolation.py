@@ -111,13 +111,14 @@ def test_a_child_in_a_new_session_keeps_the_niceness_of_a_niced_worker():
     """With autogroup scheduling, a new session starts at nice 0 whatever its process's nice: a
     worker run at ``nice 19`` would start jobs as loud as the API beside it. ``apply_limits`` (first
     thing in every child) hands the child's nice to its session."""
-    probe = ("import os, json; os.nice(7); from services.jobs.isolation import apply_limits, ChildLimits;"
-             "from dataclasses import asdict; apply_limits(asdict(ChildLimits()));"
-             "print(open('/proc/self/autogroup').read().split()[-1])")
-    done = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, timeout=60,
-                          start_new_session=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.strip() == "7"
-    unniced = subprocess.run([sys.executable, "-c", probe.replace("os.nice(7); ", "")], cwd=ROOT, capture_output=True,
-                             text=True, timeout=60, start_new_session=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
-    assert unniced.stdout.strip() == "0"                      # a worker at nice 0: nothing changed
+    def session_nice(worker_nice: int) -> str:
+        probe = (f"import os; os.nice({worker_nice}); from services.jobs.isolation import apply_limits, ChildLimits;"
+                 "from dataclasses import asdict; apply_limits(asdict(ChildLimits()));"
+                 "print(open('/proc/self/autogroup').read().split()[-1])")
+        done = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, timeout=60,
+                              start_new_session=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        assert done.returncode == 0, done.stderr
+        return done.stdout.strip()
+
+    assert session_nice(7) == "7"
+    assert session_nice(0) == "0"                             # a worker at nice 0: nothing changed

@@ -84,9 +84,9 @@ def apply_limits(limits: dict) -> None:
         resource.setrlimit(resource.RLIMIT_CPU, (limits["cpu_seconds"], limits["cpu_seconds"] + 5))
 
 
-def keep_priority(pid: int | str = "self") -> None:
-    """Give the session led by ``pid`` (a child started with ``start_new_session``) the niceness
-    of that process.
+def keep_priority() -> None:
+    """Give the session this process leads (a child started with ``start_new_session``) the
+    niceness of this process, which it inherited from its parent.
 
     With ``kernel.sched_autogroup_enabled`` (the default on most distributions) CPU time is shared
     fairly between *sessions* first, and ``nice`` only orders processes inside one. A worker run
@@ -94,11 +94,10 @@ def keep_priority(pid: int | str = "self") -> None:
     sessions at the autogroup's default nice 0: each one as loud as the API. Raising an autogroup's
     nice needs no privilege; where there is no autogroup (or no ``/proc``) this does nothing.
     """
-    target = os.getpid() if pid == "self" else int(pid)
-    nice = os.getpriority(os.PRIO_PROCESS, target)
+    nice = os.getpriority(os.PRIO_PROCESS, 0)
     if nice > 0:
         with contextlib.suppress(OSError):
-            Path(f"/proc/{pid}/autogroup").write_text(f"{nice}\n")
+            Path("/proc/self/autogroup").write_text(f"{nice}\n")
 
 
 class Child:
