@@ -56,7 +56,7 @@ def run(quick: bool) -> dict:
                 spent["radiance"] += stats.radiance_seconds
                 spent["both"] += stats.seconds
             done = steps
-            fields = Fields(trainer.radiance, trainer.differential)
+            fields = trainer.queried()
             for name, spps in query_spp.items():
                 method = make_method(name, planned.plan)
                 training = spent["radiance"] if name == "radiance-cache" else spent["both"]

@@ -1,6 +1,6 @@
 """Does ``"method": "auto"`` pick the method that is fastest when each one is run? (issue 11)
 
-``python -m bench.auto [--cells demo,hidden-object,...] [--out bench/results/auto.json]``
+``python -m bench.auto [--cells demo,hidden-object,...] [--trial-only] [--out bench/results/auto.json]``
 
 For each cell (a job file and changes to it), in one process: the trial of an ``auto`` job
 (:func:`services.solver.optimize.auto.choose_method`, exactly what the loop runs) predicts every
@@ -33,6 +33,8 @@ CELLS: dict[str, tuple[str, dict]] = {
     "hidden-object": ("examples/hidden-object.json", {}),
     "bright-room-adam": ("examples/bright-room.json", {}),
     "bright-room-gauss-newton": ("examples/bright-room.json", {"optimizer": "gauss-newton"}),
+    "room-open-8": ("examples/room-open-8.json", {}),
+    "room-closed-8-gauss-newton": ("examples/room-closed-8.json", {"optimizer": "gauss-newton"}),
 }
 
 
@@ -59,7 +61,7 @@ def verdict(cell: dict) -> str:
     return "close" if mine <= 1.5 * seconds else "wrong"
 
 
-def run_cell(job: dict, target_error: float) -> dict:
+def run_cell(job: dict, target_error: float, trial_only: bool = False) -> dict:
     from bench.regime import run_variant
     from schemas.job import JobSpec
     from schemas.methods import AUTO_CANDIDATES
@@ -69,7 +71,7 @@ def run_cell(job: dict, target_error: float) -> dict:
     choice = choose_method(prepare(JobSpec.model_validate(dict(job, method="auto"))))
     predicted = {p.method: p.total_seconds for p in choice.predictions}
     runs = {}
-    for method in AUTO_CANDIDATES:
+    for method in () if trial_only else AUTO_CANDIDATES:
         log.info("auto bench: running %s", method)
         r = run_variant(dict(job, method=str(method)), target_error)
         runs[str(method)] = {"predicted_seconds": predicted[str(method)], "measured_seconds": r["curve"][-1]["seconds"],
@@ -77,7 +79,17 @@ def run_cell(job: dict, target_error: float) -> dict:
                              "seconds_per_iteration": r["seconds_per_iteration"], "reached": r["reached"],
                              "final_error": r["final_error"], "status": r["status"]}
     return {"picked": choice.method, "reason": choice.reason, "trial_seconds": choice.trial_seconds,
-            "trial": choice.to_json(), "runs": runs}
+            "trial": choice.to_json(), "runs": runs, "predicted": predicted}
+
+
+def trial_table(cells: dict) -> str:
+    """``--trial-only``: the pick and every prediction (compare with ``bench.regime``'s whole runs)."""
+    from bench.common import markdown_table
+
+    rows = [[name, cell["picked"], "; ".join(f"{m} {s:.0f} s" for m, s in sorted(cell["predicted"].items(),
+                                                                                   key=lambda kv: kv[1])),
+             f"{cell['trial_seconds']:.1f}"] for name, cell in cells.items()]
+    return markdown_table(["cell", "auto picked", "predicted seconds for the job", "trial s"], rows)
 
 
 def table(cells: dict, target_error: float) -> str:
@@ -101,9 +113,12 @@ def table(cells: dict, target_error: float) -> str:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m bench.auto", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--cells", default=",".join(CELLS), help=f"subset of {', '.join(CELLS)}")
+    parser.add_argument("--cells", default=",".join(list(CELLS)[:4]),
+                        help=f"subset of {', '.join(CELLS)} (default: the first four; the rooms take an hour whole)")
     parser.add_argument("--target-error", type=float, default=0.02)
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "auto.json")
+    parser.add_argument("--trial-only", action="store_true",
+                        help="run only each cell's trial (the pick and its predictions), not the whole jobs")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     from bench.regime import _merge
@@ -112,10 +127,11 @@ def main(argv: list[str] | None = None) -> None:
     for name in chosen(args.cells, CELLS, parser, "cell"):
         path, change = CELLS[name]
         log.info("auto bench: cell %s", name)
-        cells[name] = run_cell(_merge(json.loads((ROOT / path).read_text()), change), args.target_error)
+        cells[name] = run_cell(_merge(json.loads((ROOT / path).read_text()), change), args.target_error,
+                               args.trial_only)
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps({"target_error": args.target_error, "cells": cells}, indent=1))
-    text = table(cells, args.target_error)
+    text = trial_table(cells) if args.trial_only else table(cells, args.target_error)
     write_markdown(args.out, "bench.auto", argv, text)
     log.info("\n%s", text)
 

@@ -32,6 +32,7 @@ def main() -> None:
     parser.add_argument("--budget", type=float, default=170.0, help="training seconds")
     parser.add_argument("--reference-spp", type=int, default=4096)
     parser.add_argument("--query-spp", type=int, default=16)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the fields' initialisation and training samples")
     args = parser.parse_args()
 
     from schemas.solver import TrainingConfig
@@ -49,19 +50,20 @@ def main() -> None:
     reference = make_method("prb").images(problem, Fields(), spp=args.reference_spp, seed=12345)
     reference_seconds = time.perf_counter() - t
 
-    trainer = FieldTrainer(problem, TrainingConfig(), radiance=True, differential=True, seed=0)
+    trainer = FieldTrainer(problem, TrainingConfig(), radiance=True, differential=True, seed=args.seed)
     t = time.perf_counter()
     while time.perf_counter() - t < args.budget:
         trainer.step()
     trained = time.perf_counter() - t
-    fields = Fields(trainer.radiance, trainer.differential)
+    fields = trainer.queried()
 
     rows = []
     direct = None
-    for name in ("ndrf-lhs", "ndrf-rhs", "radiance-cache", "direct", "prb"):
-        method = make_method(name)
+    live = Fields(trainer.radiance, trainer.differential)  # the last iterate, without weight averaging
+    for name in ("ndrf-lhs", "ndrf-lhs, live weights", "ndrf-rhs", "radiance-cache", "direct", "prb"):
+        method = make_method(name.split(",")[0])
         t = time.perf_counter()
-        images = method.images(problem, Fields() if name in ("direct", "prb") else fields,
+        images = method.images(problem, Fields() if name in ("direct", "prb") else live if "live" in name else fields,
                                spp=args.query_spp, seed=1)
         query = time.perf_counter() - t
         if name == "direct":
@@ -72,9 +74,11 @@ def main() -> None:
         f"# Gradient accuracy on `{args.scene}` / `{args.key}` (64x64)",
         "",
         f"Reference: prb, {args.reference_spp} spp, depth 12, no Russian roulette ({reference_seconds:.0f} s). "
-        f"Query: {args.query_spp} spp. Fields: default TrainingConfig, {trainer.steps} steps.",
+        f"Query: {args.query_spp} spp. Fields: default TrainingConfig, {trainer.steps} steps, queried through "
+        f"their weight averages (β = {trainer.config.weight_averaging}) except where the row says live weights.",
         f"Machine: {platform.processor() or platform.machine()}, {__import__('os').cpu_count()} cores. "
-        f"Command: `python -m bench.core_accuracy --scene {args.scene} --key {args.key} --budget {args.budget:g}`",
+        f"Command: `python -m bench.core_accuracy --scene {args.scene} --key {args.key} --budget {args.budget:g}"
+        f"{f' --seed {args.seed}' if args.seed else ''}`",
         "",
         "| method | rel. L2 error | error off the parameter's surface | training s | query s |",
         "|---|---|---|---|---|",
@@ -84,7 +88,7 @@ def main() -> None:
         lines.append(f"| {name} | {relative(images, reference):.4f} | {off_err:.4f} | {train_s:.0f} | {query:.2f} |")
     text = "\n".join(lines) + "\n"
     print(text)
-    out = Path(__file__).parent / "results" / f"core_accuracy-{args.scene}.md"
+    out = Path(__file__).parent / "results" / f"core_accuracy-{args.scene}{f'-seed{args.seed}' if args.seed else ''}.md"
     out.write_text(text)
 
 

@@ -48,7 +48,7 @@ def run(quick: bool) -> dict:
     trainer = FieldTrainer(planned, config, radiance=True, differential=True, seed=0)
     trainer.train(150 if quick else 600)
     ndrf = make_method("ndrf-rhs", planned.plan)
-    fields = Fields(trainer.radiance, trainer.differential)
+    fields = trainer.queried()
     ndrf.images(planned, fields, spp=1, seed=0)
     with timed() as t:
         for r in range(repeats):

@@ -64,6 +64,13 @@ JOB = ROOT / "examples" / "bright-room.json"
 #: the candidate from L_phi at cached first hits (no path tracing per iteration)
 FIELD = {"candidate": "field", "first_hits": "cached"}
 
+#: the path-traced candidate, with ndrf-lhs querying dL_theta at camera hits cached once per job
+CACHED = {"first_hits": "cached"}
+
+#: short training that the residual norms cut shorter (services/solver/estimators/schedule.py)
+ADAPTIVE_50 = {"adaptive_steps": True, "warmup_steps": 50, "min_warmup_steps": 30, "steps_per_iteration": 8,
+               "min_steps_per_iteration": 1}
+
 #: name -> changes to the job file
 VARIANTS: dict[str, dict] = {
     "prb": {"method": "prb"},
@@ -85,6 +92,17 @@ VARIANTS: dict[str, dict] = {
     "ndrf-lhs-field-gauss-newton": {"method": "ndrf-lhs", "optimizer": "gauss-newton", "render": FIELD},
     "ndrf-lhs-field-steps-4": {"method": "ndrf-lhs", "render": FIELD,
                                "training": {"warmup_steps": 100, "steps_per_iteration": 4}},
+    "ndrf-lhs-field-steps-4-live": {"method": "ndrf-lhs", "render": FIELD,
+                                    "training": {"warmup_steps": 100, "steps_per_iteration": 4,
+                                                 "weight_averaging": None}},
+    "ndrf-lhs-path-steps-4": {"method": "ndrf-lhs", "render": CACHED,
+                              "training": {"warmup_steps": 100, "steps_per_iteration": 4}},
+    "ndrf-lhs-path-steps-2": {"method": "ndrf-lhs", "render": CACHED,
+                              "training": {"warmup_steps": 50, "steps_per_iteration": 2}},
+    "ndrf-lhs-path-adaptive-50": {"method": "ndrf-lhs", "render": CACHED, "training": ADAPTIVE_50},
+    "ndrf-lhs-path-adaptive-50-camera-0.5": {"method": "ndrf-lhs", "render": CACHED,
+                                             "training": {**ADAPTIVE_50, "camera_points": 0.5}},
+    "ndrf-rhs-adaptive-50": {"method": "ndrf-rhs", "training": ADAPTIVE_50},
     "ndrf-lhs-field-steps-4-gauss-newton": {"method": "ndrf-lhs", "optimizer": "gauss-newton", "render": FIELD,
                                             "training": {"warmup_steps": 100, "steps_per_iteration": 4}},
     "ndrf-lhs-field-steps-2": {"method": "ndrf-lhs", "render": FIELD,
@@ -128,7 +146,8 @@ def run_variant(job: dict, target_error: float, budget: float | None = None) -> 
     for record in records:
         elapsed += sum(record["seconds"].values())
         error = float(np.max(np.abs(np.asarray(record["updated_parameters"]) - target)))
-        curve.append({"iteration": record["iteration"], "seconds": elapsed, "error": error})
+        curve.append({"iteration": record["iteration"], "seconds": elapsed, "error": error,
+                      "parameters": record["updated_parameters"]})
     reached = next((c for c in curve if c["error"] < target_error), None)
     per_iteration = [b["seconds"] - a["seconds"] for a, b in zip(curve, curve[1:], strict=False)]
     phases = {name: float(np.median([r["seconds"].get(name, 0.0) for r in records[1:]]))

@@ -115,6 +115,12 @@ class TrainingConfig(BaseModel):
     learning_rate_decay: float = Field(0.999, gt=0, le=1.0,
                                        description="Multiplicative learning-rate decay per training step "
                                                    "(floored at 10% of the initial rate).")
+    weight_averaging: float | None = Field(0.99, ge=0.0, lt=1.0,
+                                           description="β of an exponential moving average of each field's weights "
+                                                       "(Polyak averaging; services/solver/fields/averaging.py): "
+                                                       "queries read the average, training the live weights; it "
+                                                       "restarts when the parameters change. Null: query the live "
+                                                       "weights.")
     semi_gradient: bool = Field(True,
                                 description="Minimise ||LHS - sg(RHS)||² (the right-hand side is a fixed target "
                                             "each step) instead of back-propagating through both sides of the "

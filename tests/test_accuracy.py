@@ -40,12 +40,11 @@ def _setup(scene_name, key, resolution=(64, 64)):
 
 def _trained(problem, steps):
     from schemas.solver import TrainingConfig
-    from services.solver.estimators.methods import Fields
     from services.solver.estimators.training import FieldTrainer
 
     trainer = FieldTrainer(problem, TrainingConfig(), radiance=True, differential=True, seed=0)
     trainer.train(steps)
-    return Fields(trainer.radiance, trainer.differential)
+    return trainer.queried()  # what the methods read in a job: the weight averages
 
 
 @pytest.fixture(scope="module")

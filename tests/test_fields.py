@@ -1,10 +1,11 @@
 """Field components: the hash grid against a direct per-corner implementation, the spherical
-harmonics basis, and a field's output shape and scale."""
+harmonics basis, a field's output shape and scale, and the average of its weights."""
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -122,3 +123,65 @@ def test_precomputed_inputs_survive_selection_and_give_the_same_values():
     with torch.no_grad():
         assert torch.allclose(field(part), field(fresh.select(index)), atol=1e-6)
         assert torch.allclose(field(pooled), field(fresh), atol=1e-6)
+
+
+def _small_field():
+    from schemas.solver import FieldConfig, HashGridConfig, MLPConfig
+    from services.solver.fields.field import NeuralField
+
+    config = FieldConfig(encoding=HashGridConfig(n_levels=2, log2_hashmap_size=8),
+                         mlp=MLPConfig(hidden_width=8, hidden_layers=1))
+    return NeuralField(config, channels=2, box_min=[0, 0, 0], box_max=[1, 1, 1])
+
+
+def _fill(field, value: float) -> None:
+    with torch.no_grad():
+        for p in field.parameters():
+            p.fill_(value)
+
+
+def test_weight_average_follows_its_update_rule_and_restarts_when_the_parameters_change():
+    """w̄_k = β_k w̄_(k-1) + (1 - β_k) w_k with β_k = min(β, (1 + k) / (10 + k)), k counting the
+    updates since the scene's parameters last changed; buffers are copied, not averaged."""
+    from services.solver.fields.averaging import WeightAverage
+
+    field = _small_field()
+    _fill(field, 0.0)
+    average = WeightAverage(field, decay=0.5)
+    expected, values = 0.0, np.array([0.3])
+    for k, w in enumerate([1.0, 2.0, 4.0, 8.0]):
+        _fill(field, w)
+        average.update(values)
+        beta = min(0.5, (1 + k) / (10 + k))
+        expected = beta * expected + (1 - beta) * w
+        assert all(torch.allclose(p, torch.full_like(p, expected)) for p in average.average.parameters())
+    assert expected != pytest.approx(8.0)                       # it did average
+    with torch.no_grad():
+        field.output_scale.fill_(7.0)
+    _fill(field, 16.0)
+    average.update(np.array([0.31]))                            # a parameter step: k = 0 again
+    restarted = 0.1 * expected + 0.9 * 16.0
+    assert all(torch.allclose(p, torch.full_like(p, restarted)) for p in average.average.parameters())
+    assert torch.equal(average.average.output_scale, field.output_scale)
+    assert not any(p.requires_grad for p in average.average.parameters())
+
+
+def test_weight_average_survives_its_state_dict_and_rejects_a_decay_outside_zero_one():
+    from services.solver.fields.averaging import WeightAverage
+
+    field = _small_field()
+    average = WeightAverage(field, decay=0.9)
+    for w in (1.0, 3.0):
+        _fill(field, w)
+        average.update(np.array([0.5, 0.5]))
+    state = average.state_dict()
+    restored = WeightAverage(_small_field(), decay=0.9)
+    restored.load_state_dict(state)
+    _fill(field, 5.0)
+    _fill(restored.field, 5.0)
+    average.update(np.array([0.5, 0.5]))
+    restored.update(np.array([0.5, 0.5]))                       # same count, same parameters: no restart
+    assert all(torch.equal(a, b) for a, b in zip(average.average.parameters(), restored.average.parameters()))
+    for decay in (-0.1, 1.0):
+        with pytest.raises(ValueError, match=r"\[0, 1\)"):
+            WeightAverage(field, decay)

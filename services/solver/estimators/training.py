@@ -40,6 +40,7 @@ from services.solver.estimators.residuals import (
     residual_loss,
 )
 from services.solver.estimators.schedule import StepSchedule
+from services.solver.fields.averaging import WeightAverage
 from services.solver.fields.field import NeuralField
 from services.solver.seeds import derive_seed
 
@@ -100,6 +101,8 @@ class FieldTrainer:
             name: torch.optim.Adam(field.parameters(), lr=config.learning_rate, eps=1e-10, fused=True)
             for name, field in self.fields().items()
         }
+        self.averages = ({name: WeightAverage(field, config.weight_averaging) for name, field in self.fields().items()}
+                         if config.weight_averaging is not None else {})
         self.calibrated = {name: False for name in self.optimizers}
         self.last = StepStats(None, None, 0.0)
         self.schedule = StepSchedule(config)
@@ -116,7 +119,22 @@ class FieldTrainer:
             return NeuralField(config, channels, lo, hi)
 
     def fields(self) -> dict[str, NeuralField]:
+        """The fields being trained (live weights)."""
         return {name: f for name, f in (("radiance", self.radiance), ("differential", self.differential)) if f is not None}
+
+    def queried(self) -> Fields:
+        """The fields that gradients and images read: the weight averages (``weight_averaging``)
+        or, without them, the live fields."""
+        if not self.averages:
+            return Fields(self.radiance, self.differential)
+        pick = {name: average.average for name, average in self.averages.items()}
+        return Fields(pick.get("radiance"), pick.get("differential"))
+
+    def _update_averages(self) -> None:
+        if self.averages:
+            values = self.problem.parameters.values()
+            for average in self.averages.values():
+                average.update(values)
 
     # ------------------------------------------------------------------ steps
 
@@ -189,6 +207,7 @@ class FieldTrainer:
                 "differential", self.differential, lambda b: self.differential(b.points),
                 lambda b: layout.pack(differential_rhs_samples(b, self.radiance, self.differential, layout)), batch)
         self.steps += 1
+        self._update_averages()
         end = time.perf_counter()
         self.last = _stats(primal, differential, end - start, middle - start, end - middle)
         return self.last
@@ -219,6 +238,7 @@ class FieldTrainer:
                 batch)
         batch_id = self.pool.batch_id(self.steps)
         self.steps += 1
+        self._update_averages()
         end = time.perf_counter()
         self.last = _stats(primal, diff, end - start, middle - start, end - middle, batch_id)
         return self.last
@@ -254,6 +274,7 @@ class FieldTrainer:
             "fields": {name: f.state_dict() for name, f in self.fields().items()},
             "optimizers": {name: o.state_dict() for name, o in self.optimizers.items()},
             "schedule": self.schedule.state_dict(),
+            "averages": {name: a.state_dict() for name, a in self.averages.items()},
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -263,6 +284,12 @@ class FieldTrainer:
         for name, f in self.fields().items():
             f.load_state_dict(state["fields"][name])
             self.optimizers[name].load_state_dict(state["optimizers"][name])
+        saved = state.get("averages", {})
+        for name, average in self.averages.items():
+            if name in saved:
+                average.load_state_dict(saved[name])
+            else:  # a checkpoint from before weight averaging: start the average at the live weights
+                average.average.load_state_dict(self.fields()[name].state_dict())
 
 
 def trainer_for(problem: Problem, method: GradientMethod, config: TrainingConfig, seed: int, *,
@@ -282,4 +309,5 @@ def trainer_for(problem: Problem, method: GradientMethod, config: TrainingConfig
 
 
 def fields_of(trainer: FieldTrainer | None) -> Fields:
-    return Fields() if trainer is None else Fields(trainer.radiance, trainer.differential)
+    """The fields a method queries (:meth:`FieldTrainer.queried`; none without a trainer)."""
+    return Fields() if trainer is None else trainer.queried()
