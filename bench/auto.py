@@ -21,7 +21,7 @@ import json
 import logging
 from pathlib import Path
 
-from bench.common import chosen, write_markdown
+from bench.common import chosen, markdown_table, write_markdown
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +36,9 @@ CELLS: dict[str, tuple[str, dict]] = {
     "room-open-8": ("examples/room-open-8.json", {}),
     "room-closed-8-gauss-newton": ("examples/room-closed-8.json", {"optimizer": "gauss-newton"}),
 }
+
+#: run without --cells (the rooms' whole runs take about an hour)
+DEFAULT_CELLS = ("demo", "hidden-object", "bright-room-adam", "bright-room-gauss-newton")
 
 
 def measured_fastest(runs: dict[str, dict]) -> tuple[str, float]:
@@ -84,8 +87,6 @@ def run_cell(job: dict, target_error: float, trial_only: bool = False) -> dict:
 
 def trial_table(cells: dict) -> str:
     """``--trial-only``: the pick and every prediction (compare with ``bench.regime``'s whole runs)."""
-    from bench.common import markdown_table
-
     rows = [[name, cell["picked"], "; ".join(f"{m} {s:.0f} s" for m, s in sorted(cell["predicted"].items(),
                                                                                    key=lambda kv: kv[1])),
              f"{cell['trial_seconds']:.1f}"] for name, cell in cells.items()]
@@ -93,8 +94,6 @@ def trial_table(cells: dict) -> str:
 
 
 def table(cells: dict, target_error: float) -> str:
-    from bench.common import markdown_table
-
     rows = []
     for name, cell in cells.items():
         best, _ = measured_fastest(cell["runs"])
@@ -113,8 +112,8 @@ def table(cells: dict, target_error: float) -> str:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m bench.auto", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--cells", default=",".join(list(CELLS)[:4]),
-                        help=f"subset of {', '.join(CELLS)} (default: the first four; the rooms take an hour whole)")
+    parser.add_argument("--cells", default=",".join(DEFAULT_CELLS),
+                        help=f"subset of {', '.join(CELLS)} (default: {', '.join(DEFAULT_CELLS)})")
     parser.add_argument("--target-error", type=float, default=0.02)
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "auto.json")
     parser.add_argument("--trial-only", action="store_true",

@@ -60,11 +60,13 @@ def main() -> None:
     rows = []
     direct = None
     live = Fields(trainer.radiance, trainer.differential)  # the last iterate, without weight averaging
-    for name in ("ndrf-lhs", "ndrf-lhs, live weights", "ndrf-rhs", "radiance-cache", "direct", "prb"):
-        method = make_method(name.split(",")[0])
+    queries = [("ndrf-lhs", "ndrf-lhs", fields), ("ndrf-lhs, live weights", "ndrf-lhs", live),
+               ("ndrf-rhs", "ndrf-rhs", fields), ("radiance-cache", "radiance-cache", fields),
+               ("direct", "direct", Fields()), ("prb", "prb", Fields())]
+    for name, method_name, used in queries:
+        method = make_method(method_name)
         t = time.perf_counter()
-        images = method.images(problem, Fields() if name in ("direct", "prb") else live if "live" in name else fields,
-                               spp=args.query_spp, seed=1)
+        images = method.images(problem, used, spp=args.query_spp, seed=1)
         query = time.perf_counter() - t
         if name == "direct":
             direct = images

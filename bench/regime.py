@@ -37,6 +37,12 @@ Variants:
 ``ndrf-lhs-field-steps-4``  the field candidate with half the training: 100 warm-up steps, 4 per iteration
 ``ndrf-lhs-field-steps-4-gauss-newton``  the same with Gauss-Newton steps
 ``ndrf-lhs-field-steps-2[-gauss-newton]``  a quarter of the training: 50 warm-up steps, 2 per iteration
+``ndrf-lhs-field-steps-4-live``  half the training, the fields queried without weight averaging
+``ndrf-lhs-path-steps-4``, ``-steps-2``  the path-traced candidate, dL_theta at cached camera hits,
+                        half / a quarter of the training
+``ndrf-lhs-path-adaptive-50[-camera-0.5]``  the same with adaptive steps (at most 50 warm-up, 1 to 8
+                        per iteration; with half the residual points where the cameras look)
+``ndrf-rhs-adaptive-50``  ndrf-rhs (fresh one-bounce query) with those adaptive steps
 ``prb-spp-N``           prb with N (1, 4, 16) spp for the candidate and the adjoint pass
 
 ``--job examples/room-closed-8.json`` (or ``room-open-8.json``) runs the variants on the multi-view
@@ -67,6 +73,10 @@ FIELD = {"candidate": "field", "first_hits": "cached"}
 #: the path-traced candidate, with ndrf-lhs querying dL_theta at camera hits cached once per job
 CACHED = {"first_hits": "cached"}
 
+#: half and a quarter of the rooms' training (200 warm-up steps, 8 per iteration)
+HALF = {"warmup_steps": 100, "steps_per_iteration": 4}
+QUARTER = {"warmup_steps": 50, "steps_per_iteration": 2}
+
 #: short training that the residual norms cut shorter (services/solver/estimators/schedule.py)
 ADAPTIVE_50 = {"adaptive_steps": True, "warmup_steps": 50, "min_warmup_steps": 30, "steps_per_iteration": 8,
                "min_steps_per_iteration": 1}
@@ -91,24 +101,23 @@ VARIANTS: dict[str, dict] = {
     "ndrf-lhs-field": {"method": "ndrf-lhs", "render": FIELD},
     "ndrf-lhs-field-gauss-newton": {"method": "ndrf-lhs", "optimizer": "gauss-newton", "render": FIELD},
     "ndrf-lhs-field-steps-4": {"method": "ndrf-lhs", "render": FIELD,
-                               "training": {"warmup_steps": 100, "steps_per_iteration": 4}},
+                               "training": HALF},
     "ndrf-lhs-field-steps-4-live": {"method": "ndrf-lhs", "render": FIELD,
-                                    "training": {"warmup_steps": 100, "steps_per_iteration": 4,
-                                                 "weight_averaging": None}},
+                                    "training": {**HALF, "weight_averaging": None}},
     "ndrf-lhs-path-steps-4": {"method": "ndrf-lhs", "render": CACHED,
-                              "training": {"warmup_steps": 100, "steps_per_iteration": 4}},
+                              "training": HALF},
     "ndrf-lhs-path-steps-2": {"method": "ndrf-lhs", "render": CACHED,
-                              "training": {"warmup_steps": 50, "steps_per_iteration": 2}},
+                              "training": QUARTER},
     "ndrf-lhs-path-adaptive-50": {"method": "ndrf-lhs", "render": CACHED, "training": ADAPTIVE_50},
     "ndrf-lhs-path-adaptive-50-camera-0.5": {"method": "ndrf-lhs", "render": CACHED,
                                              "training": {**ADAPTIVE_50, "camera_points": 0.5}},
     "ndrf-rhs-adaptive-50": {"method": "ndrf-rhs", "training": ADAPTIVE_50},
     "ndrf-lhs-field-steps-4-gauss-newton": {"method": "ndrf-lhs", "optimizer": "gauss-newton", "render": FIELD,
-                                            "training": {"warmup_steps": 100, "steps_per_iteration": 4}},
+                                            "training": HALF},
     "ndrf-lhs-field-steps-2": {"method": "ndrf-lhs", "render": FIELD,
-                               "training": {"warmup_steps": 50, "steps_per_iteration": 2}},
+                               "training": QUARTER},
     "ndrf-lhs-field-steps-2-gauss-newton": {"method": "ndrf-lhs", "optimizer": "gauss-newton", "render": FIELD,
-                                            "training": {"warmup_steps": 50, "steps_per_iteration": 2}},
+                                            "training": QUARTER},
     "prb-spp-1": {"method": "prb", "render": {"spp": 1, "gradient_spp": 1}},
     "prb-spp-4": {"method": "prb", "render": {"spp": 4, "gradient_spp": 4}},
     "prb-spp-16": {"method": "prb", "render": {"spp": 16, "gradient_spp": 16}},
