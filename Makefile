@@ -8,7 +8,7 @@ BIN := $(VENV)/bin
 LLVM := /usr/lib/x86_64-linux-gnu/libLLVM-19.so
 export DRJIT_LIBLLVM_PATH ?= $(LLVM)
 
-.PHONY: install system-deps demo check test test-fast bench clean
+.PHONY: install system-deps demo check test test-fast docs bench-docs bench clean
 
 system-deps:
 	@if [ ! -e "$(LLVM)" ]; then \
@@ -41,9 +41,18 @@ test: install
 test-fast: install
 	$(BIN)/python -m pytest -m "not slow"
 
+# the docs site into site/: the job-file reference regenerated from the schemas, warnings are errors
+docs: install
+	$(BIN)/python -m schemas.reference
+	$(BIN)/mkdocs build --strict
+
+# the benchmark pages of the docs, from bench/results (after a benchmark wrote new results)
+bench-docs: install
+	$(BIN)/python -m bench.docs
+
 bench: install
 	$(BIN)/pip install -q -e '.[dev,bench]'
 	$(BIN)/python -m bench --quick
 
 clean:
-	rm -rf $(VENV) runs .pytest_cache
+	rm -rf $(VENV) runs site .pytest_cache

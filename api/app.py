@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from contextlib import asynccontextmanager
+from importlib.metadata import version
 
 from fastapi import FastAPI
 from starlette.types import ASGIApp, Receive, Scope, Send
@@ -101,7 +102,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app = FastAPI(
         title="NDRF inverse rendering",
-        version="0.2.0",
+        version=version("ndrf"),  # pyproject.toml's, as installed
         summary="Recover scene parameters from photographs with Neural Differential Radiance Fields.",
         lifespan=lifespan,
     )

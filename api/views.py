@@ -11,8 +11,8 @@ from schemas.records import FINISHED, JobPublic, JobRecord
 from services.settings import Settings
 from services.store.job import JobFiles
 
-METRICS = ("loss", "residual_primal", "residual_differential", "seconds", "sanitized", "parameter_error",
-           "learning_rate")
+METRICS = ("loss", "residual_radiance", "residual_differential", "seconds", "sanitized", "parameter_error", "views",
+           "optimizer", "learning_rate")
 
 
 def job_public(record: JobRecord, files: JobFiles, settings: Settings) -> JobPublic:
@@ -38,6 +38,7 @@ def job_public(record: JobRecord, files: JobFiles, settings: Settings) -> JobPub
         target=dict(zip(labels, target)) if labels and target else None, metrics=metrics, plan=plan or None,
         error=record.error, field=record.field, elapsed_seconds=elapsed, eta_seconds=eta,
         experiment=record.experiment, varied=record.varied, read_token=token,
+        images_requested=record.images_requested,
     )
 
 

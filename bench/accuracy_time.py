@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 
 from bench.common import problem, relative_error, timed
+from services.solver.estimators.render import PathDepth
 
 log = logging.getLogger(__name__)
 
@@ -23,7 +24,7 @@ SCENES = {  # scene: (parameter, what it shows)
 def run(quick: bool) -> dict:
     from schemas.solver import TrainingConfig
     from services.solver.estimators.methods import Fields, make_method
-    from services.solver.estimators.training import FieldTrainer
+    from services.solver.training.trainer import FieldTrainer
 
     reference_spp = 512 if quick else 4096
     sample_spp = [1, 4, 16, 64] if quick else [1, 4, 16, 64, 256, 1024]
@@ -36,7 +37,7 @@ def run(quick: bool) -> dict:
         log.info("accuracy vs time: %s", scene)
         prob = problem(scene, [key])
         with timed() as t_ref:
-            reference = make_method("prb").images(prob, Fields(), spp=reference_spp, seed=999)
+            reference = make_method("prb", None, PathDepth(12, None)).images(prob, Fields(), spp=reference_spp, seed=999)
         points = []
         for name in ("prb", "direct"):
             method = make_method(name)

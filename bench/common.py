@@ -108,9 +108,11 @@ def chosen(names: str, known, parser, what: str) -> list[str]:
 
 
 def write_markdown(out, module: str, argv: list[str] | None, text: str) -> None:
-    """``out`` with suffix ``.md``: the command that made it (``python -m module ARGS``), then ``text``."""
+    """``out`` with suffix ``.md``: the machine and the command that made it (``python -m module ARGS``),
+    then ``text`` (``python -m bench.docs`` reads the machine line)."""
     import sys
     from pathlib import Path
 
     command = " ".join(sys.argv[1:] if argv is None else argv)
-    Path(out).with_suffix(".md").write_text(f"Command: `python -m {module} {command}`\n\n{text}\n")
+    stamp = ", ".join(f"{k} {v}" for k, v in machine().items() if v is not None)
+    Path(out).with_suffix(".md").write_text(f"Machine: {stamp}\nCommand: `python -m {module} {command}`\n\n{text}\n")

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from services.solver.estimators.render import PathDepth
+
 
 def relative(g, ref, where=None):
     if where is not None:
@@ -40,14 +42,14 @@ def main() -> None:
     use_mitsuba(), use_torch()
     from services.solver.estimators.methods import Fields, make_method
     from services.solver.estimators.problem import Problem
-    from services.solver.estimators.training import FieldTrainer
     from services.solver.scene.load import load_scene
     from services.solver.scene.params import ParameterSet
+    from services.solver.training.trainer import FieldTrainer
 
     scene = load_scene(builtin=args.scene, resolution=(64, 64))
     problem = Problem(scene, ParameterSet(scene.params, [args.key]))
     t = time.perf_counter()
-    reference = make_method("prb").images(problem, Fields(), spp=args.reference_spp, seed=12345)
+    reference = make_method("prb", None, PathDepth(12, None)).images(problem, Fields(), spp=args.reference_spp, seed=12345)
     reference_seconds = time.perf_counter() - t
 
     trainer = FieldTrainer(problem, TrainingConfig(), radiance=True, differential=True, seed=args.seed)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 
 from bench.common import problem, relative_error, timed
+from services.solver.estimators.render import PathDepth
 
 log = logging.getLogger(__name__)
 
@@ -29,15 +30,15 @@ def run(quick: bool) -> dict:
     from schemas.solver import TrainingConfig
     from services.solver.estimators.methods import Fields, make_method
     from services.solver.estimators.methods.prb import Prb
-    from services.solver.estimators.training import FieldTrainer
+    from services.solver.training.trainer import FieldTrainer
 
     depths = [2, 4, 8, 16] if quick else [2, 3, 4, 6, 8, 12, 16]
     spp, repeats = 16, (2 if quick else 3)
     prob = problem("hidden-object", ["hidden.reflectance.value"])
-    reference = Prb(max_depth=64).images(prob, Fields(), spp=256 if quick else 1024, seed=5)
+    reference = Prb(depth=PathDepth(64, None)).images(prob, Fields(), spp=256 if quick else 1024, seed=5)
     rows = []
     for depth in depths:
-        method = Prb(max_depth=depth)
+        method = Prb(depth=PathDepth(depth, None))
         method.images(prob, Fields(), spp=1, seed=0)           # compile outside the clock
         with timed() as t:
             for r in range(repeats):

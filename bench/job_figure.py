@@ -1,6 +1,6 @@
 """A figure of finished jobs: the target, the first gradient image, parameter trajectories.
 
-    python -m bench.job_figure runs/hidden-rhs runs/hidden-rc --out docs/hidden-object.png
+    python -m bench.job_figure runs/hidden-rhs runs/hidden-rc --out docs/assets/hidden-object.png
 
 Each argument is a job folder (``ndrf run ... --out DIR`` or the service's store). The first row
 shows the first job's target image and, per job, its iteration-0 gradient image dI/dp of the first

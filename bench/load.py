@@ -17,7 +17,7 @@ Phases, each against the same API while two long jobs train:
 CPU placement (2 cores here): the API on core 0 (``taskset -c 0``), this load generator on core 1,
 the workers (and their jobs) on both cores at ``nice 19``, so the training soaks up idle time
 without taking it from the API or the clients (the nice given to their sessions' autogroups too:
-:class:`bench.cluster.Process`). ``--api-processes N`` serves with
+:class:`tests.support.cluster.Process`). ``--api-processes N`` serves with
 ``ndrf serve --workers N`` (uvicorn processes on one port; the store and Redis are shared).
 """
 
@@ -37,7 +37,7 @@ from pathlib import Path
 
 import httpx
 
-from bench.cluster import Redis, small_job, start_api, start_worker, wait_until
+from tests.support.cluster import Redis, small_job, start_api, start_worker, wait_until
 
 log = logging.getLogger("bench.load")
 

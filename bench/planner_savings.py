@@ -42,7 +42,7 @@ def _problem(scene: str, keys: list[str], method: str, overrides: dict):
 def run(quick: bool) -> dict:
     from schemas.solver import TrainingConfig
     from services.solver.estimators.methods import make_method
-    from services.solver.estimators.training import fields_of, trainer_for
+    from services.solver.training.trainer import fields_of, trainer_for
 
     steps = 15 if quick else 40
     rows = []

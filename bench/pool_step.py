@@ -28,11 +28,11 @@ def measure(pool: bool, steps: int) -> dict:
     use_mitsuba(), use_torch()
     from services.solver.estimators.methods import method_class
     from services.solver.estimators.problem import Problem
-    from services.solver.estimators.training import FieldTrainer
     from services.solver.scene.facts import probe_scene
     from services.solver.scene.load import load_scene
     from services.solver.scene.params import ParameterSet
     from services.solver.scene.planner import plan_effects
+    from services.solver.training.trainer import FieldTrainer
 
     scene = load_scene(builtin="cornell-box", resolution=(64, 64))
     problem = Problem(scene, ParameterSet(scene.params, ["red.reflectance.value"]))

@@ -1,12 +1,16 @@
-"""Seconds per ``prb`` iteration before and after the adjoint path, for 3 and 24 scalars.
+"""Seconds per ``prb`` iteration: the product's loop against the hand-written Mitsuba loop, at equal
+settings.
 
-*Before* (the loop until this change): a path-traced candidate, then per-scalar gradient images by
-forward mode (one ``prb`` render per scalar), contracted with dz/dy. *After*: one differentiable
-render gives the candidate, and one adjoint pass gives dz/dp for every scalar
-(``Prb.candidate_and_gradient``). Both are timed in this process, alternating, on the same scene
-and settings (64x64, 16 spp, depth 12), after a warm-up that compiles every kernel.
+``python -m bench.prb_iteration [--job examples/room-open-8.json] [--rounds 3] [--iterations 60]``
 
-    python -m bench.prb_iteration [--repeats 5]
+Both run the job from its initial values for ``--iterations`` iterations of one view, 1 spp and
+Russian roulette from depth 5 with Adam: the loop is :func:`bench.mitsuba_loop.run_loop` (Mitsuba's
+tutorial loop: ``mi.render``, ``dr.backward``, ``mi.ad.Adam``, clipping, the parameter error read
+back), the product is the job through ``run_local`` with ``"method": "prb", "optimizer": "adam"``:
+its records, events, checkpoints and images (on their default 5% budget) included. The two
+alternate ``--rounds`` times in one process, after one untimed run of each (kernel compilation),
+so that a busy machine slows both; reported: the median seconds per iteration of each round and
+their ratio.
 """
 
 from __future__ import annotations
@@ -14,86 +18,56 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import time
 from pathlib import Path
 
 import numpy as np
 
+from bench.common import machine, markdown_table, write_markdown
+from bench.mitsuba_loop import LoopSetting, run_loop
+from bench.regime import default_job, merge, run_product
+
 log = logging.getLogger(__name__)
 
-
-def _problem(scalars: int):
-    from bench.scaling import textured_box
-    from services.solver.estimators.problem import Problem
-    from services.solver.scene.load import load_scene
-    from services.solver.scene.params import ParameterSet
-
-    if scalars == 3:
-        scene = load_scene(builtin="cornell-box", resolution=(64, 64))
-        return Problem(scene, ParameterSet(scene.params, ["red.reflectance.value"]))
-    side = {24: (4, 6)}[scalars]
-    d = textured_box(1)
-    import mitsuba as mi
-
-    d["poster"]["reflectance"]["bitmap"] = mi.Bitmap(np.full((side[0], side[1], 1), 0.7, np.float32))
-    scene = load_scene(mitsuba_dict=d, resolution=(64, 64))
-    return Problem(scene, ParameterSet(scene.params, ["back.bsdf.reflectance.data"]))
+ROOT = Path(__file__).resolve().parent.parent
+ADAM = {"method": "prb", "optimizer": "adam", "views_per_iteration": 1}
 
 
-def before(problem, method, loss, spp: int, seed: int) -> np.ndarray:
-    """The old loop: candidate, per-scalar forward-mode images, contraction."""
-    from services.solver.estimators.methods import Fields, contract
-    from services.solver.estimators.render import render
+def run(job: dict, rounds: int, iterations: int) -> list[dict]:
+    from schemas.job import JobSpec
+    from services.solver.optimize.setup import prepare
 
-    candidate = render(problem, spp=spp, seed=seed, max_depth=12)
-    _, dz_dy = loss(candidate)
-    return contract(method.images(problem, Fields(), spp=spp, seed=seed + 1), dz_dy)
-
-
-def after(problem, method, loss, spp: int, seed: int) -> np.ndarray:
-    return method.candidate_and_gradient(problem, None, loss, spp=spp, gradient_spp=spp, seed=seed, max_depth=12)[2]
-
-
-def run(repeats: int, spp: int = 16) -> dict:
-    from services.solver.backend import use_mitsuba, use_torch
-
-    use_mitsuba(), use_torch()
-    from services.solver.estimators.methods import make_method
-    from services.solver.estimators.render import render
-    from services.solver.optimize.losses import image_loss
-
-    out = {}
-    for scalars in (3, 24):
-        problem = _problem(scalars)
-        assert problem.parameters.n == scalars, problem.parameters.n
-        target = render(problem, spp=64, seed=1, max_depth=12) * 1.2
-        loss = lambda y, target=target: image_loss("l2", y, target)
-        method = make_method("prb", max_depth=12)
-        before(problem, method, loss, spp, 0), after(problem, method, loss, spp, 0)   # compile outside the clock
-        times = {"before": [], "after": []}
-        for r in range(repeats):
-            for name, step in (("before", before), ("after", after)):
-                start = time.perf_counter()
-                step(problem, method, loss, spp, 10 + r)
-                times[name].append(time.perf_counter() - start)
-        out[scalars] = {k: float(np.median(v)) for k, v in times.items()}
-        out[scalars]["speedup"] = out[scalars]["before"] / out[scalars]["after"]
-        log.info("prb iteration, %d scalars: %s", scalars, out[scalars])
-    return out
+    base = merge(default_job(job), ADAM)
+    prepared = prepare(JobSpec.model_validate(base))
+    setting = LoopSetting(spp=1, rr_depth=5, views=1)
+    run_loop(prepared, setting, target_error=0.0, iterations=3)
+    run_product(merge(base, {"targets": {"synthetic": {"spp": 1}}}), 0.0, iterations=3)
+    rows = []
+    for r in range(rounds):
+        loop = run_loop(prepared, setting, target_error=0.0, iterations=iterations, seed=r)
+        product = run_product(dict(base, seed=r), 0.0, iterations=iterations)
+        rows.append({"round": r, "loop": loop["seconds_per_iteration"], "product": product["seconds_per_iteration"]})
+        log.info("round %d: %s", r, rows[-1])
+    return rows
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--out", type=Path, default=Path("bench/results/prb_iteration.json"))
-    args = parser.parse_args()
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    result = run(args.repeats)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
-    for scalars, row in result.items():
-        print(f"{scalars:3d} scalars: before {row['before']:.2f} s, after {row['after']:.2f} s "
-              f"({row['speedup']:.1f}x)")
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m bench.prb_iteration", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--job", type=Path, default=ROOT / "examples" / "room-open-8.json")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--iterations", type=int, default=60)
+    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "prb_iteration.json")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    rows = run(json.loads(args.job.read_text()), args.rounds, args.iterations)
+    ratios = [r["product"] / r["loop"] for r in rows]
+    args.out.write_text(json.dumps({"machine": machine(), "job": str(args.job), "rows": rows,
+                                    "median_ratio": float(np.median(ratios))}, indent=1))
+    lines = [[r["round"], f"{r['loop']:.4f}", f"{r['product']:.4f}", f"{r['product'] / r['loop']:.2f}x"] for r in rows]
+    lines.append(["median", "", "", f"{np.median(ratios):.2f}x"])
+    text = markdown_table(["round", "loop s / iteration", "product s / iteration", "product / loop"], lines)
+    write_markdown(args.out, "bench.prb_iteration", argv, text)
+    log.info("\n%s", text)
 
 
 if __name__ == "__main__":

@@ -49,7 +49,7 @@ def summarize(path: Path) -> str:
 def train(steps: int) -> None:
     from bench.common import problem
     from schemas.solver import TrainingConfig
-    from services.solver.estimators.training import FieldTrainer
+    from services.solver.training.trainer import FieldTrainer
 
     prob = problem("cornell-box", ["red.reflectance.value"], method="ndrf-rhs")
     trainer = FieldTrainer(prob, TrainingConfig(), radiance=True, differential=True, seed=0)

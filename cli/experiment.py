@@ -182,7 +182,7 @@ def experiment_command(spec_path: str, out_dir: str, jobs: int, quiet: bool) -> 
 
 def compare_spec(job: dict, seeds: list[int], target_error: float | None) -> dict:
     name = job.get("name") or "job"
-    spec = {"name": f"compare: {name}"[:200], "base": job, "grid": {"method": [m.value for m in Method]},
+    spec: dict[str, object] = {"name": f"compare: {name}"[:200], "base": job, "grid": {"method": [m.value for m in Method]},
             "seeds": seeds, "objective": {"metric": "time_to_error" if target_error else "parameter_error"}}
     if target_error is not None:
         spec["target_error"] = target_error

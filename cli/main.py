@@ -14,6 +14,7 @@ from cli.service import serve_command, worker_command
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("-v", "--verbose", count=True, help="More logging (-v info, -vv debug).")
+@click.version_option(package_name="ndrf")  # pyproject.toml's version, as installed
 def main(verbose: int) -> None:
     """Inverse rendering with Neural Differential Radiance Fields."""
     setup_logging(verbose)

@@ -34,7 +34,7 @@ def _progress_hooks(total: int):
         elif kind == "resumed":
             progress.update(task, completed=event["iteration"], description="resumed")
         elif kind == "warmup":
-            residual = event.get("residual_differential") or event.get("residual_primal")
+            residual = event.get("residual_differential") or event.get("residual_radiance")
             progress.update(task, description=f"warm-up {event['steps']}/{event['planned']} steps"
                                               + (f", residual {residual:.3g}" if residual is not None else ""))
         elif kind == "plan":

@@ -118,6 +118,10 @@ class Client:
     def cancel(self, resource_id: str) -> dict:
         return self.post(f"{self.path_of(resource_id)}/cancel")
 
+    def request_images(self, job_id: str) -> dict:
+        """The running job writes every view's render and its gradient images at its next iteration."""
+        return self.post(f"/v1/jobs/{job_id}/images")
+
     # -------------------------------------------------------------- experiments
 
     def submit_experiment(self, spec: dict) -> dict:

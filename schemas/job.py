@@ -81,9 +81,11 @@ class SyntheticTarget(_Strict):
     values: dict[str, Scalars] = Field(description="Parameter values of the target, by key.")
     spp: int = Field(256, ge=1, le=65536, description="Samples per pixel of the target rendering.")
     max_depth: int | None = Field(
-        None, ge=1, le=1024, description="Path depth of the target rendering. Default: deep enough that the "
-                                         "image has converged (measured on the scene, as a photograph has all "
-                                         "bounces); the plan reports the depth used.")
+        None, ge=1, le=1024, description="Path depth of the target rendering. Default: unbounded, paths ended "
+                                         "by Russian roulette from depth rr_depth (unbiased: the target has every "
+                                         "bounce, as a photograph has).")
+    rr_depth: int = Field(5, ge=1, le=1024, description="Depth from which Russian roulette ends target paths "
+                                                        "(Mitsuba's default; unbiased).")
 
 
 class ImageTarget(_Strict):
@@ -111,16 +113,23 @@ TargetSpec = SyntheticTargets | ImageTargets
 class RenderSpec(_Strict):
     """How candidate images and gradients are rendered."""
 
-    spp: int = Field(16, ge=1, le=4096, description="Samples per pixel of the candidate render (Sec. 5, step 2).")
-    gradient_spp: int = Field(16, ge=1, le=4096,
+    spp: int = Field(1, ge=1, le=4096, description="Samples per pixel of the candidate render (Sec. 5, step 2). "
+                                                   "1 is fastest to a given error in every scene measured (bench/): "
+                                                   "the optimizer averages the noise across iterations.")
+    gradient_spp: int = Field(1, ge=1, le=4096,
                               description="Samples per pixel of the gradient query (camera rays for ndrf-*, "
-                                          "radiance-cache and direct; paths for prb).")
+                                          "radiance-cache and direct; paths for prb) and of the Jacobian.")
     resolution: tuple[int, int] | None = Field(None, description="[width, height] overriding the scene's film.")
     max_depth: int | None = Field(
-        None, ge=1, le=1024, description="Path depth of the path-traced candidate and of prb. Default: the depth at "
-                                         "which the scene's image has converged (measured at the initial and target "
-                                         "parameters; the plan reports it), so that the candidate has every bounce a "
-                                         "photograph has.")
+        None, ge=1, le=1024, description="Path depth of the path-traced candidate, of prb and of its Jacobian. "
+                                         "Default: unbounded, paths ended by Russian roulette from rr_depth, as "
+                                         "Mitsuba does: unbiased, so the candidate has every bounce a photograph "
+                                         "has. A finite depth truncates light paths (biased in bright closed "
+                                         "rooms: the plan warns).")
+    rr_depth: int | None = Field(
+        5, ge=1, le=1024, description="Depth from which Russian roulette ends paths (Mitsuba's default 5). Roulette "
+                                      "is unbiased: it re-weights the paths it keeps. Null turns it off; max_depth "
+                                      "must then be set.")
     candidate: Literal["path", "field"] = Field(
         "path", description="How the candidate image is formed (Sec. 5, step 2): 'path' path-traces it with spp "
                             "samples and render.max_depth bounces; 'field' evaluates emission + L_phi at the camera's "
@@ -137,6 +146,12 @@ class RenderSpec(_Strict):
         if resolution is not None and not (1 <= resolution[0] <= 8192 and 1 <= resolution[1] <= 8192):
             raise ValueError(f"resolution must be [width, height] within 1..8192, got {list(resolution)}")
         return resolution
+
+    @model_validator(mode="after")
+    def _terminates(self):
+        if self.max_depth is None and self.rr_depth is None:
+            raise ValueError("render.rr_depth null (no Russian roulette) needs a finite render.max_depth")
+        return self
 
 
 # ---------------------------------------------------------------------------------- effects
@@ -163,6 +178,9 @@ class EffectOverrides(_Strict):
 
 # -------------------------------------------------------------------------------------- job
 
+#: The optimizers that step from a Jacobian (``services.solver.optimize.optimizers``).
+SECOND_ORDER = ("levenberg-marquardt", "gauss-newton")
+
 class JobSpec(_Strict):
     """An inverse-rendering job (paper Sec. 5)."""
 
@@ -170,30 +188,57 @@ class JobSpec(_Strict):
     scene: SceneSpec = Field(description="The scene: {'builtin': NAME} or {'xml': ..., 'files': {...}}.")
     parameters: list[ParameterSpec] = Field(min_length=1, max_length=64, description="Parameters to recover.")
     targets: TargetSpec = Field(description="{'synthetic': {...}} or {'images': [...]}.")
-    method: Method | Literal["auto"] = Field(Method.NDRF_RHS, description=METHOD_HELP)
-    iterations: int = Field(60, ge=1, le=100000, description="Optimization iterations.")
-    learning_rate: float = Field(0.05, gt=0, le=100.0, description="Adam learning rate of the scene parameters.")
+    method: Method | Literal["auto"] = Field("auto", description=METHOD_HELP)
+    iterations: int = Field(60, ge=1, le=100000, description="Optimization iterations: parameter steps, each on "
+                                                           "views_per_iteration of the target views.")
+    views_per_iteration: int | Literal["auto"] = Field(
+        "auto", description="Target views rendered per iteration (a mini-batch; the loss, dz/dp and the Jacobian "
+                            "come from them, scaled to estimate the loss summed over every view). 'auto': one view, "
+                            "the batch doubled whenever the optimizer's steps turn noise-dominated (they keep "
+                            "reversing): views up to every view, then samples per pixel, up to 16 times the first "
+                            "batch. Views are drawn without replacement from a seeded permutation per pass over "
+                            "the views, so a resumed run draws the same batches.")
+    learning_rate: float = Field(0.05, gt=0, le=100.0,
+                                 description="Step size of the scene parameters: Adam's learning rate, and the "
+                                             "smallest trust radius (largest change of a scalar per iteration) of "
+                                             "the Gauss-Newton and Levenberg-Marquardt steps.")
     adam_betas: tuple[float, float] = Field(
         (0.8, 0.99), description="Adam's decay rates of the first and second moment estimates, each in [0, 1). "
                                   "Shorter than the usual (0.9, 0.999): with noisy Monte Carlo gradients and tens of "
                                   "iterations, a long first-moment memory overshoots the optimum and a long second-moment "
                                   "memory keeps the step large after the gradient has shrunk.")
-    optimizer: Literal["adam", "gauss-newton"] = Field(
-        "adam", description="Update rule of the scene parameters. 'adam': Adam with adam_betas. 'gauss-newton': "
-                            "Levenberg-Marquardt steps from the gradient images dy/dp of every iteration (H = (2/n) "
-                            "J^T J; l2 loss only), no scalar moving more than the learning rate per iteration: for "
-                            "scalars that trade against each other in the image (a narrow curved valley of the loss, "
-                            "where Adam crawls). Costs one gradient-image pass per iteration (prb: one forward-mode "
-                            "render per scalar).")
-    damping: float = Field(1e-4, ge=0.0, le=1e6, description="Marquardt damping lambda of 'gauss-newton': the step "
-                                                             "solves (H + lambda diag(H)) delta = -grad. It must stay "
-                                                             "below the ratio of H's smallest to largest curvature, or "
-                                                             "it damps exactly the valley direction the step is for.")
-    hessian: Literal["product", "cross"] = Field(
-        "product", description="Gauss-Newton's curvature from the gradient images J: 'product' (2/n) J^T J from one "
-                               "estimate, biased upwards by J's Monte Carlo variance, which damps the valley direction; "
-                               "'cross' (1/n)(J_a^T J_b + J_b^T J_a) from two independent half-sample estimates, "
-                               "unbiased, noisier (eigenvalues below 1e-6 of the largest are raised to it).")
+    optimizer: Literal["auto", "adam", "levenberg-marquardt", "gauss-newton"] = Field(
+        "auto", description="Update rule of the scene parameters (services/solver/optimize/optimizers/). 'adam': Adam "
+                            "with adam_betas. 'levenberg-marquardt': damped Gauss-Newton steps from the Jacobian dy/dp "
+                            "(H = (2/n) J^T J; l2 loss only) in a trust region that grows while consecutive steps "
+                            "agree and halves when they reverse, never below the learning rate: for scalars that "
+                            "trade against each other in the image (a curved valley, where Adam crawls) and for "
+                            "reaching the answer in few steps. 'gauss-newton': the same steps with the trust radius "
+                            "fixed at the learning rate. 'auto': Levenberg-Marquardt when the loss is l2 and the "
+                            "Jacobian costs at most a few renders per view, else Adam (plan.json says why).")
+    jacobian: Literal["method", "differential-field"] = Field(
+        "method", description="Where the (Gauss-Newton, Levenberg-Marquardt) Jacobian dy/dp comes from. 'method': the "
+                              "gradient method's own per-scalar images (prb: one forward-mode render per group of "
+                              "scalars that change distinct RGB channels; ndrf-*: a field query). "
+                              "'differential-field': dL_theta at the cached camera hits (Eq. 11), whatever the "
+                              "gradient method: with prb, the hybrid of an unbiased gradient and NDRF's smooth "
+                              "curvature (the fields are trained alongside).")
+    jacobian_every: int = Field(1, ge=1, le=10000, description="Recompute the Jacobian every K iterations (the "
+                                                               "curvature of the iterations between is reused).")
+    damping: float = Field(1e-3, ge=0.0, le=1e6, description="Marquardt damping lambda of the Gauss-Newton and "
+                                                             "Levenberg-Marquardt steps: they solve (H + lambda diag(H)) "
+                                                             "delta = -grad. It must stay below the ratio of H's smallest "
+                                                             "to largest curvature, or it damps exactly the valley "
+                                                             "direction the step is for.")
+    hessian: Literal["successive", "product", "cross"] = Field(
+        "successive", description="Curvature from the Jacobian J: 'product' (2/n) J^T J from one estimate, biased "
+                                  "upwards by J's Monte Carlo variance, which damps the valley direction (most "
+                                  "where the signal is weak, as for an object seen only in reflections); 'cross' "
+                                  "(1/n)(J_a^T J_b + J_b^T J_a) from two independent estimates, unbiased, one more "
+                                  "Jacobian per view; 'successive': the cross product of the view's Jacobian with "
+                                  "its previous one (independent samples, nearby parameters): unbiased where J "
+                                  "changes slowly and free; the product for a view's first Jacobian. Indefinite "
+                                  "estimates have their eigenvalues raised to 1e-6 of the largest.")
     final_learning_rate_ratio: float = Field(
         0.1, gt=0, le=1.0, description="Learning rate of the last iteration as a fraction of learning_rate "
                                        "(geometric decay; 1 keeps it constant). Noisy gradients need the decay "
@@ -203,8 +248,14 @@ class JobSpec(_Strict):
     training: TrainingConfig = Field(default_factory=TrainingConfig, description="Training of L_phi and dL_theta.")
     effects: EffectOverrides = Field(default_factory=EffectOverrides, description="Overrides of the effect planner.")
     checkpoint_every: int = Field(10, ge=1, le=100000, description="Write a checkpoint every K iterations.")
-    images_every: int = Field(1, ge=1, le=100000, description="Write renders and gradient images every K iterations "
-                                                              "(records are written every iteration).")
+    images_every: int | None = Field(
+        None, ge=1, le=100000, description="Write the renders of every view and the gradient images every K "
+                                           "iterations (records are written every iteration). Default: whenever "
+                                           "the images written so far took less than images_budget of the run's "
+                                           "time, and at the last iteration; the dashboard can ask for them at any "
+                                           "iteration.")
+    images_budget: float = Field(0.05, ge=0.0, le=1.0, description="Share of the run's time that images written on "
+                                                                   "the default schedule may take.")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed of every random choice; equal seeds give equal runs.")
 
     def fingerprint(self) -> str:
@@ -228,9 +279,12 @@ class JobSpec(_Strict):
             missing = [k for k in keys if k not in self.targets.synthetic.values]
             if missing:
                 raise ValueError(f"targets.synthetic.values has no value for {missing}")
-        if self.optimizer == "gauss-newton" and self.loss != "l2":
-            raise ValueError(f"optimizer 'gauss-newton' models the l2 loss; got loss {self.loss!r}")
-        if self.hessian != "product" and self.optimizer != "gauss-newton":
-            raise ValueError(f"hessian {self.hessian!r} is Gauss-Newton's; the optimizer is {self.optimizer!r}")
+        if self.optimizer in SECOND_ORDER and self.loss != "l2":
+            raise ValueError(f"optimizer {self.optimizer!r} models the l2 loss; got loss {self.loss!r}")
+        if self.hessian != "successive" and self.optimizer == "adam":
+            raise ValueError(f"hessian {self.hessian!r} is a second-order optimizer's; the optimizer is "
+                             f"{self.optimizer!r}")
+        if self.jacobian == "differential-field" and self.method in (Method.DIRECT, Method.RADIANCE_CACHE):
+            raise ValueError(f"jacobian 'differential-field' trains dL_theta; method {self.method!r} never has one")
         return self
 

@@ -27,18 +27,14 @@ class Method(StrEnum):
     PRB = "prb"
 
 
-#: The choice a job may leave to the product: measure each unbiased method on the job's own scene
-#: and run the one predicted fastest (``services.solver.optimize.auto``).
+#: The choice a job may leave to the product (the default): no trial before the first iteration;
+#: the recipe follows from the scene and the job, and the run's own iterations adjust its batch
+#: (``services.solver.optimize.recipe``).
 AUTO = "auto"
-
-#: The methods ``auto`` chooses among: the unbiased ones (radiance-cache and direct are baselines
-#: whose gradients miss indirect terms; they are never picked for a user).
-AUTO_CANDIDATES: tuple[Method, ...] = (Method.PRB, Method.NDRF_LHS, Method.NDRF_RHS)
 
 METHOD_HELP = (
     "Gradient method: ndrf-lhs (dL_theta at the camera hit, Eq. 11), ndrf-rhs (one bounce with "
     "dL_theta and L_phi at the next hit, Sec. 6.3), radiance-cache (L_phi, indirect dL = 0), direct "
-    "(emitters only), prb (Mitsuba's Path Replay Backpropagation, the reference) or auto (a short "
-    "trial of prb, ndrf-lhs and ndrf-rhs on the job's own scene predicts each one's time for the "
-    "job's iterations; the fastest runs, and plan.json says why)."
+    "(emitters only), prb (Mitsuba's Path Replay Backpropagation: unbiased) or auto (the default: prb "
+    "with the optimizer and batch chosen for the job; plan.json's recipe says what ran and why)."
 )

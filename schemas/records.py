@@ -56,6 +56,8 @@ class JobRecord(BaseModel):
     error: str | None = None
     field: str | None = None
     cancel_requested: bool = False
+    images_requested: bool = Field(False, description="Someone asked for the renders and gradient images of the "
+                                                      "next iteration (cleared when they are written).")
     idempotency_key: str | None = None
     fingerprint: str | None = None
     experiment: str | None = Field(None, description="Id of the experiment this job is a run of.")
@@ -70,18 +72,25 @@ class IterationRecord(BaseModel):
     iteration: int = Field(description="0-based iteration index.")
     loss: float | None = Field(description="Image loss z(y), summed over sensors.")
     parameters: list[float] = Field(description="Parameters at which loss and gradient were evaluated.")
-    updated_parameters: list[float] = Field(description="Parameters after the Adam step and projection.")
+    updated_parameters: list[float] = Field(description="Parameters after the optimizer's step and projection.")
     dz_dp: list[float] = Field(description="Gradient of the loss w.r.t. every scalar (Eq. 10).")
-    learning_rate: float = Field(description="Adam learning rate of this step.")
-    seconds: dict[str, float] = Field(description="Seconds per phase: training (the fields), gradient (candidate, "
-                                                  "loss and dz/dp: the step itself), images (per-scalar gradient "
-                                                  "images, on iterations that write them).")
+    learning_rate: float = Field(description="Learning rate of this step (the job's schedule).")
+    views: list[int] = Field(default_factory=list, description="The target views (sensor indices) of this "
+                                                               "iteration's batch.")
+    optimizer: dict[str, float] | None = Field(None, description="The optimizer's own state after the step "
+                                                                 "(Levenberg-Marquardt: its trust radius).")
+    seconds: dict[str, float] = Field(description="Seconds per phase: training (the fields), gradient (candidates, "
+                                                  "losses, dz/dp and, for second-order steps, the Jacobian of the "
+                                                  "batch), step (the optimizer), images (renders of every view and "
+                                                  "gradient images, on iterations that write them).")
     sanitized: dict[str, int] = Field(default_factory=dict,
                                       description="Lanes or steps whose non-finite values were zeroed or skipped, "
                                                   "by where (cumulative over the run).")
     training_steps: int = Field(0, description="Training steps of the fields in this iteration.")
-    residual_primal: float | None = Field(None, description="Mean residual norm of L_phi over the iteration's steps.")
-    residual_differential: float | None = Field(None, description="Mean residual norm of dL_theta.")
+    residual_radiance: float | None = Field(None, description="Mean residual norm of the radiance field L_phi over "
+                                                               "the iteration's steps.")
+    residual_differential: float | None = Field(None, description="Mean residual norm of the differential field "
+                                                                   "dL_theta.")
     parameter_error: float | None = Field(None, description="max |p - target| (synthetic targets only).")
     images: bool = Field(False, description="Whether renders and gradient images were written this iteration.")
     preview_scales: list[float] | None = Field(None, description="Value of full red in each gradient preview.")
@@ -111,6 +120,8 @@ class JobPublic(BaseModel):
     eta_seconds: float | None = Field(None, description="Estimated seconds to completion.")
     experiment: str | None = Field(None, description="Id of the experiment this job is a run of.")
     varied: dict[str, Any] | None = Field(None, description="Values of the experiment's varied fields.")
+    images_requested: bool = Field(False, description="The job writes every view's render and its gradient images "
+                                                      "at its next iteration (POST /v1/jobs/{id}/images).")
     read_token: str | None = Field(None, description="Short-lived token for this job's GET routes (events, images, "
                                                      "downloads), for clients that cannot send headers: "
                                                      "?token=<it>. Null without API keys.")

@@ -57,7 +57,7 @@ class FieldConfig(BaseModel):
 class PoolConfig(BaseModel):
     """Reuse of residual batches across training steps (geometry is fixed in every job, so points,
     incident rays, hits and encoding lookups are drawn once per batch; only BSDF and emitter
-    values are re-evaluated after a parameter step). See ``services/solver/estimators/pool.py``."""
+    values are re-evaluated after a parameter step). See ``services/solver/training/pool.py``."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -98,7 +98,7 @@ class TrainingConfig(BaseModel):
     adaptive_steps: bool = Field(False,
                                  description="Let the residual norms decide the steps: the warm-up stops when "
                                              "both residuals plateau, fine-tuning when they are back at their "
-                                             "plateau after a parameter step (services/solver/estimators/schedule.py).")
+                                             "plateau after a parameter step (services/solver/training/schedule.py).")
     min_warmup_steps: int = Field(100, ge=0, le=100000, description="Adaptive warm-up: at least this many steps.")
     min_steps_per_iteration: int = Field(1, ge=0, le=10000,
                                          description="Adaptive fine-tuning: at least this many steps per iteration.")

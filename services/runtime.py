@@ -15,12 +15,15 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from services.jobs.service import JobService
 from services.queue.base import EventBus, JobQueue, StreamSlots
 from services.settings import Settings
 from services.store.base import ArtifactStore
+
+if TYPE_CHECKING:
+    import redis
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +62,7 @@ class Runtime:
     queue: JobQueue
     events: EventBus
     slots: StreamSlots | None = None
-    redis: object | None = None
+    redis: redis.Redis | None = None  # the client of REDIS_URL (None: the embedded default)
     blocking: Any = None  # the API's limiter of blocking work (an anyio CapacityLimiter)
     workers: list = field(default_factory=list)
     threads: list = field(default_factory=list)

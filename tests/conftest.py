@@ -1,12 +1,39 @@
-"""Shared fixtures. Mitsuba's variant is selected once per session, lazily."""
+"""Shared fixtures, and the test tiers. Mitsuba's variant is selected once per session, lazily.
+
+The tiers are folders (``tests/unit``, ``tests/service``, ``tests/e2e``); every test in one is
+marked with its name, so ``pytest -m unit`` runs a tier whatever paths are given. Helpers live in
+``tests/support`` and are imported by absolute name, so moving a test file between tiers is a
+``git mv`` and nothing else.
+"""
 
 from __future__ import annotations
 
 import signal
+from pathlib import Path
 
 import pytest
 
-from tests.service import Process, RedisServer, open_test_store, start_api
+from tests.support.service import Process, RedisServer, open_test_store, start_api
+
+#: Tier folder -> what its tests run against (the marker and its description).
+TIERS = {
+    "unit": "in-process: the solver, the schemas and the service's logic, no server process",
+    "service": "the service's parts against real infrastructure: Redis, the stores, sandboxed children",
+    "e2e": "real ndrf serve / ndrf worker / CLI processes, the dashboard in Chromium, faults",
+}
+TESTS = Path(__file__).resolve().parent
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    for tier, what in TIERS.items():
+        config.addinivalue_line("markers", f"{tier}: {what}")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        parts = Path(str(item.path)).resolve().relative_to(TESTS).parts
+        if len(parts) > 1 and parts[0] in TIERS:
+            item.add_marker(getattr(pytest.mark, parts[0]))
 
 
 @pytest.fixture(scope="session")
@@ -19,12 +46,12 @@ def mi():
 
 @pytest.fixture(scope="module")
 def browser():
-    """A headless Chromium per dashboard test module (``tests/browser.py``). Module scope, not
+    """A headless Chromium per dashboard test module (``tests/support/browser.py``). Module scope, not
     session: Playwright's sync API keeps an event loop running in this thread while it is open,
     and later tests call ``asyncio.run``."""
     from playwright.sync_api import sync_playwright
 
-    from tests.browser import ARGS, CHROMIUM
+    from tests.support.browser import ARGS, CHROMIUM
 
     with sync_playwright() as playwright:
         browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
@@ -34,8 +61,8 @@ def browser():
 
 @pytest.fixture(scope="session")
 def s3_server():
-    """moto's S3 server on loopback, in a child process, for the whole session (tests/s3server.py)."""
-    from tests.s3server import S3Server
+    """moto's S3 server on loopback, in a child process, for the whole session (tests/support/s3server.py)."""
+    from tests.support.s3server import S3Server
 
     server = S3Server().start()
     yield server
@@ -48,7 +75,7 @@ def s3_store(s3_server):
     import uuid
 
     from services.store.s3 import S3Store
-    from tests.s3server import ACCESS_KEY, REGION, SECRET_KEY
+    from tests.support.s3server import ACCESS_KEY, REGION, SECRET_KEY
 
     store = S3Store(f"s3://ndrf/t-{uuid.uuid4().hex[:12]}", endpoint=s3_server.endpoint, access_key_id=ACCESS_KEY,
                     secret_access_key=SECRET_KEY, region=REGION)

@@ -18,6 +18,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from services.solver.estimators.render import PathDepth
+
 pytestmark = pytest.mark.slow
 
 STEPS = 300
@@ -40,7 +42,7 @@ def _setup(scene_name, key, resolution=(64, 64)):
 
 def _trained(problem, steps):
     from schemas.solver import TrainingConfig
-    from services.solver.estimators.training import FieldTrainer
+    from services.solver.training.trainer import FieldTrainer
 
     trainer = FieldTrainer(problem, TrainingConfig(), radiance=True, differential=True, seed=0)
     trainer.train(steps)
@@ -52,7 +54,7 @@ def cornell(mi):
     from services.solver.estimators.methods import Fields, make_method
 
     problem = _setup("cornell-box", "red.reflectance.value")
-    reference = make_method("prb").images(problem, Fields(), spp=4096, seed=12345)
+    reference = make_method("prb", None, PathDepth(12, None)).images(problem, Fields(), spp=4096, seed=12345)
     fields = _trained(problem, STEPS)
     images = {name: make_method(name).images(problem, Fields() if name == "direct" else fields, spp=16, seed=1)
               for name in ("ndrf-lhs", "ndrf-rhs", "radiance-cache", "direct")}
@@ -80,18 +82,18 @@ def test_cornell_box_indirect_gradients_off_the_red_wall(cornell):
 
 
 def test_hidden_object_gradient_only_ndrf_sees(mi):
+    from services.solver.estimators.losses import image_loss
     from services.solver.estimators.methods import Fields, make_method
     from services.solver.estimators.render import render
-    from services.solver.optimize.losses import image_loss
 
     problem = _setup("hidden-object", "hidden.reflectance.value")
     params = problem.parameters
-    target = render(problem, spp=256, seed=3)                     # the scene's own albedo (0.8, 0.35, 0.1)
+    target = render(problem, spp=256, seed=3, depth=PathDepth(12, None))  # the scene's own albedo (0.8, 0.35, 0.1)
     params.assign(np.full(3, 0.2))
-    candidate = render(problem, spp=256, seed=4)
+    candidate = render(problem, spp=256, seed=4, depth=PathDepth(12, None))
     _, dz_dy = image_loss("l2", candidate, target)
 
-    reference = make_method("prb").loss_gradient(problem, Fields(), dz_dy, spp=2048, seed=5)
+    reference = make_method("prb", None, PathDepth(12, None)).loss_gradient(problem, Fields(), dz_dy, spp=2048, seed=5)
     fields = _trained(problem, 250)
     dz_dp = {name: make_method(name).loss_gradient(problem, Fields() if name == "direct" else fields, dz_dy,
                                                    spp=64, seed=6)

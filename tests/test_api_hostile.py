@@ -13,9 +13,9 @@ import struct
 
 import pytest
 
-from tests.payloads import QUAD, TRIANGLES, ply_header, png, serialized, serialized_shape
-from tests.scenes import SELF_CONTAINED_XML, upload_scene
-from tests.service import Process, RedisServer, small_job, start_api
+from tests.support.payloads import QUAD, TRIANGLES, ply_header, png, serialized, serialized_shape
+from tests.support.scenes import SELF_CONTAINED_XML, upload_scene
+from tests.support.service import Process, RedisServer, small_job, start_api
 
 #: The API process's peak resident memory after the whole suite (VmHWM), in MiB. The API imports
 #: FastAPI, pydantic, numpy and Pillow; a scene loaded in-process would add Mitsuba (and a hostile

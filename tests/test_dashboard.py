@@ -3,7 +3,7 @@
 the job page following the SSE stream, the gradient slider, cancel, and the live jobs list.
 
 Screenshots go to the test's tmp_path; with NDRF_UPDATE_SCREENSHOTS=1 the job page is also
-written to docs/dashboard.png for the README."""
+written to docs/assets/dashboard.png for the docs."""
 
 from __future__ import annotations
 
@@ -12,16 +12,13 @@ import re
 import shutil
 import signal
 import time
-from pathlib import Path
 
 import pytest
 
-from tests.browser import CHROMIUM
-from tests.scenes import QUAD_OBJ, UPLOAD_MATERIALS, UPLOAD_XML
-from tests.service import small_job, start_api
+from tests.support.browser import CHROMIUM, KEY, open_with_key
+from tests.support.scenes import QUAD_OBJ, UPLOAD_MATERIALS, UPLOAD_XML
+from tests.support.service import ROOT, small_job, start_api
 
-ROOT = Path(__file__).resolve().parent.parent
-KEY = "dash-key"
 FINISHED = ("succeeded", "failed", "canceled")
 
 
@@ -50,21 +47,6 @@ def page(browser, api):
     assert not errors, f"uncaught errors in the page: {errors}"
 
 
-def open_with_key(page, api, route: str = "/", wrong_first: bool = False):
-    """Open the dashboard; the first API call gets a 401 and the page asks for the key once."""
-    page.goto(api.base + route)
-    dialog = page.get_by_test_id("api-key-dialog")
-    dialog.wait_for(state="visible")
-    if wrong_first:                                   # refused: asked again, saying so
-        page.get_by_test_id("api-key-input").fill("not-the-key")
-        page.get_by_test_id("api-key-submit").click()
-        page.locator("#key-error").wait_for(state="visible")
-    page.get_by_test_id("api-key-input").fill(KEY)
-    page.get_by_test_id("api-key-submit").click()
-    dialog.wait_for(state="hidden")
-    assert page.evaluate("sessionStorage.getItem('ndrf.apiKey')") == KEY
-
-
 def fill_small_job(page, *, name: str, spp: str = "4", init: str = "0.3", iterations: str = "20"):
     """The submit form, filled for a job that runs in seconds on 2 cores (cornell-box, 16x16)."""
     page.get_by_test_id("field-scene.builtin").select_option("cornell-box")
@@ -74,11 +56,12 @@ def fill_small_job(page, *, name: str, spp: str = "4", init: str = "0.3", iterat
     row.get_by_test_id("param-target").fill("0.57, 0.04, 0.04")
     page.get_by_test_id("field-name").fill(name)
     page.get_by_test_id("field-method").select_option("ndrf-lhs")
+    page.locator("details.advanced > summary").click()        # images_every lives under Advanced
     for path, value in {"iterations": iterations, "learning_rate": "0.05", "render.spp": spp,
                         "render.gradient_spp": "4", "render.resolution.width": "16", "render.resolution.height": "16",
                         "targets.synthetic.spp": "16", "training.warmup_steps": "10",
                         "training.steps_per_iteration": "2", "training.residual_points": "256",
-                        "training.incident_samples": "4", "seed": "1"}.items():
+                        "training.incident_samples": "4", "images_every": "1", "seed": "1"}.items():
         page.get_by_test_id(f"field-{path}").fill(value)
 
 
@@ -165,7 +148,7 @@ def test_submit_a_job_and_watch_it_live(page, api, tmp_path):
     page.mouse.move(0, 0)
     page.wait_for_function("[...document.querySelectorAll('[data-testid=gradient-image]')].every(i => i.naturalWidth > 0)")
     page.screenshot(path=tmp_path / "job.png", full_page=True)
-    docs = ROOT / "docs" if os.environ.get("NDRF_UPDATE_SCREENSHOTS") else tmp_path / "docs"
+    docs = ROOT / "docs" / "assets" if os.environ.get("NDRF_UPDATE_SCREENSHOTS") else tmp_path / "docs"
     docs.mkdir(exist_ok=True)
     page.set_viewport_size({"width": 1360, "height": 1330})
     page.screenshot(path=docs / "dashboard.png")

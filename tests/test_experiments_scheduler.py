@@ -21,7 +21,7 @@ from services.queue.local import LocalEventBus, LocalJobQueue
 from services.settings import Limits
 from services.store.job import JobFiles
 from services.store.local import FolderStore
-from tests.service import small_job, wait_until
+from tests.support.service import small_job, wait_until
 
 
 class FakeWorker:

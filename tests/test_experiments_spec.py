@@ -30,7 +30,7 @@ from services.experiments.validate import check_run_count, validate_runs
 from services.settings import Limits
 from services.store.job import JobFiles
 from services.store.local import FolderStore
-from tests.service import small_job
+from tests.support.service import small_job
 
 
 def spec(**sweep) -> ExperimentSpec:

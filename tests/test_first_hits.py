@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 import torch
 
+from services.solver.estimators.render import PathDepth
+
 ALBEDO = np.array([0.2, 0.5, 0.8])
 
 
@@ -35,13 +37,15 @@ def _setup(mi, rfilter="box", spp=4):
     from services.solver.estimators.problem import Problem
     from services.solver.scene.load import load_scene
     from services.solver.scene.params import ParameterSet
-    from tests.scenes import sky_plane
+    from tests.support.scenes import sky_plane
 
     d = sky_plane(ALBEDO)
     d["sensor"]["film"]["rfilter"] = {"type": rfilter}
     scene = load_scene(mitsuba_dict=d)
     problem = Problem(scene, ParameterSet(scene.params, ["plane-bsdf.reflectance.value"]))
-    radiance, differential = _constant_field(3, ALBEDO), _constant_field(9, np.eye(3).reshape(-1))
+    # dL_theta of the plane is the identity: scalar c (the albedo's channel c) changes channel c by 1
+    identity = problem.layout.pack(torch.eye(3, dtype=torch.float32)).numpy()
+    radiance, differential = _constant_field(3, ALBEDO), _constant_field(problem.layout.outputs, identity)
     cache = FirstHitCache(problem, [0], spp, seed=4, fields=[radiance, differential])
     return problem, cache, radiance, differential
 
@@ -51,7 +55,7 @@ def test_the_field_candidate_matches_a_path_tracer(mi):
 
     problem, cache, radiance, _ = _setup(mi, spp=16)
     candidate = cache.candidate(0, radiance)
-    traced = render(problem, spp=256, seed=1, max_depth=16)
+    traced = render(problem, spp=256, seed=1, depth=PathDepth(16, None))
     assert candidate.shape == traced.shape == (16, 16, 3)
     assert candidate.mean((0, 1)) == pytest.approx(traced.mean((0, 1)), rel=0.01)
     assert np.sqrt(np.mean((candidate - traced) ** 2)) < 0.05 * np.sqrt(np.mean(traced ** 2))
@@ -84,7 +88,8 @@ def test_a_job_runs_on_cached_first_hits_with_adaptive_steps(mi, tmp_path):
     training steps: records as usual, images only on the iterations that write them."""
     import json
 
-    from tests.test_loop import SMALL_TRAINING, _run, small_job
+    from tests.support.jobs import SMALL_TRAINING, small_job
+    from tests.support.jobs import run_job as _run
 
     job = small_job("ndrf-lhs", iterations=4, images_every=3,
                     render={"spp": 4, "gradient_spp": 2, "resolution": [16, 16], "candidate": "field",

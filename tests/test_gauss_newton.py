@@ -10,27 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.solver.estimators.methods.base import contract
-from services.solver.optimize.adam import Adam
-from services.solver.optimize.gauss_newton import gauss_newton_hessian, gauss_newton_step
-from services.solver.optimize.losses import image_loss
-
-
-def coupled_model(seed=0):
-    rng = np.random.default_rng(seed)
-    walls = rng.uniform(0.5, 1.5, (8, 8, 3))
-    sphere = 0.97 * walls + 0.03 * rng.uniform(0.0, 1.0, (8, 8, 3))      # almost the same image
-    light = rng.uniform(0.0, 0.3, (8, 8, 3))
-    images = np.stack([walls, sphere, light]).astype(np.float32)        # J = dy/dp, (P, H, W, 3)
-    truth = np.array([0.95, 0.2, 0.6])
-    return images, truth, np.einsum("phwc,p->hwc", images.astype(np.float64), truth)
-
-
-def gradient(images, p, target):
-    """dz/dp as the loop forms it: the l2 loss of image_loss contracted with dy/dp (Eq. 10)."""
-    y = np.einsum("phwc,p->hwc", images.astype(np.float64), p)
-    _, dz_dy = image_loss("l2", y.astype(np.float32), target.astype(np.float32))
-    return contract(images, dz_dy)
+from services.solver.optimize.optimizers.adam import Adam
+from services.solver.optimize.optimizers.gauss_newton import gauss_newton_hessian, gauss_newton_step
+from tests.support.linear import coupled_model, gradient
 
 
 def test_the_hessian_is_two_over_n_jtj():
@@ -95,17 +77,18 @@ def test_gauss_newton_is_l2_only():
     from pydantic import ValidationError
 
     from schemas.job import JobSpec
-    from tests.test_loop import small_job
+    from tests.support.jobs import small_job
 
     with pytest.raises(ValidationError, match="l2"):
         JobSpec.model_validate(small_job("prb", optimizer="gauss-newton", loss="l1"))
-    with pytest.raises(ValidationError, match="hessian 'cross' is Gauss-Newton's"):
-        JobSpec.model_validate(small_job("prb", hessian="cross"))
+    with pytest.raises(ValidationError, match="hessian 'cross' is a second-order optimizer's"):
+        JobSpec.model_validate(small_job("prb", optimizer="adam", hessian="cross"))
 
 
 @pytest.mark.parametrize(("method", "hessian"), [("prb", "product"), ("ndrf-lhs", "product"), ("prb", "cross")])
 def test_the_loop_runs_gauss_newton_steps_towards_the_target(mi, tmp_path, method, hessian):
-    from tests.test_loop import _run, small_job
+    from tests.support.jobs import run_job as _run
+    from tests.support.jobs import small_job
 
     summary = _run(small_job(method, iterations=6, learning_rate=0.1, final_learning_rate_ratio=1.0,
                              optimizer="gauss-newton", hessian=hessian), tmp_path)

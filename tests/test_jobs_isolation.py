@@ -87,12 +87,13 @@ def test_a_job_canceled_as_its_process_starts_is_canceled_not_crashed(tmp_path):
     import threading
 
     from schemas.job import JobSpec
+    from schemas.outcomes import Outcome
     from schemas.records import JobRecord, JobStatus
     from services.jobs.runner import AttemptRunner
     from services.jobs.state import JobStates, now_iso
     from services.settings import Limits
     from services.store.local import FolderStore
-    from tests.service import small_job
+    from tests.support.service import small_job
 
     states = JobStates(FolderStore(tmp_path / "store"))
     job_id, now = "0" * 19 + "1", now_iso()
@@ -102,8 +103,8 @@ def test_a_job_canceled_as_its_process_starts_is_canceled_not_crashed(tmp_path):
                             created=now, updated=now, iterations=spec.iterations))
     states.transition(job_id, JobStatus.RUNNING, attempt="w#1")
     runner = AttemptRunner(states, Limits(), tmp_path / "scratch")
-    result = runner.run(job_id, "w#1", lost=threading.Event(), stop=lambda: "canceled")
-    assert result.status == "canceled" and states.get(job_id).status is JobStatus.CANCELED
+    result = runner.run(job_id, "w#1", lost=threading.Event(), stop=lambda: Outcome.CANCELED)
+    assert result.outcome is Outcome.CANCELED and states.get(job_id).status is JobStatus.CANCELED
 
 
 @pytest.mark.skipif(not Path("/proc/self/autogroup").exists(), reason="no autogroup scheduling on this kernel")

@@ -7,6 +7,7 @@ import threading
 import pytest
 
 from schemas.job import JobSpec
+from schemas.outcomes import Outcome
 from schemas.records import JobStatus
 from services.jobs.artifacts import JobWriter
 from services.jobs.runner import AttemptRunner
@@ -15,7 +16,7 @@ from services.queue.local import LocalEventBus, LocalJobQueue
 from services.settings import Limits
 from services.store.job import JobFiles
 from services.store.local import FolderStore
-from tests.service import small_job
+from tests.support.service import small_job
 
 
 @pytest.fixture
@@ -33,8 +34,8 @@ def claimed(tmp_path):
 
 def test_a_cancel_asked_before_the_child_is_ready_cancels_it_cleanly(claimed):
     service, job_id, runner = claimed
-    result = runner().run(job_id, "w#1", lost=threading.Event(), stop=lambda: "canceled")
-    assert result.status == "canceled", result
+    result = runner().run(job_id, "w#1", lost=threading.Event(), stop=lambda: Outcome.CANCELED)
+    assert result.outcome is Outcome.CANCELED, result
     assert service.states.get(job_id).status is JobStatus.CANCELED
 
 
@@ -43,7 +44,7 @@ def test_a_lost_lease_fences_the_attempt_and_nothing_more_is_written(claimed):
     lost = threading.Event()
     lost.set()
     result = runner().run(job_id, "w#1", lost=lost, stop=lambda: None)
-    assert result.status == "fenced"
+    assert result.outcome is Outcome.FENCED
     assert service.states.get(job_id).status is JobStatus.RUNNING      # the new owner decides
     assert service.states.files(job_id).iterations() == []
 
@@ -53,13 +54,13 @@ def test_a_job_over_its_disk_budget_fails_naming_the_setting(claimed):
     tight = runner()
     tight.limits = tight.limits.model_copy(update={"job_bytes": 50_000})   # below the settings' floor: a test
     result = tight.run(job_id, "w#1", lost=threading.Event(), stop=lambda: None)
-    assert result.status == "failed" and "NDRF_MAX_JOB_BYTES" in service.states.get(job_id).error
+    assert result.outcome is Outcome.FAILED and "NDRF_MAX_JOB_BYTES" in service.states.get(job_id).error
 
 
 def test_a_job_over_its_wall_clock_fails_naming_the_setting(claimed):
     service, job_id, runner = claimed
     result = runner(job_seconds=1.0).run(job_id, "w#1", lost=threading.Event(), stop=lambda: None)
-    assert result.status == "failed"
+    assert result.outcome is Outcome.FAILED
     assert "NDRF_MAX_JOB_SECONDS" in service.states.get(job_id).error
 
 
@@ -103,3 +104,52 @@ def test_a_kill_between_the_checkpoint_writes_loses_no_iteration_record(tmp_path
     resumed_from = files.resume_checkpoint()
     continues_at = int(resumed_from.decode().rsplit(" ", 1)[1])
     assert set(range(continues_at)) <= set(files.iterations()), (continues_at, files.iterations())
+
+
+class _Journal(FolderStore):
+    """A folder store that keeps the order of its writes and flushes: (what, key, durable)."""
+
+    def __init__(self, root):
+        super().__init__(root)
+        self.journal: list[tuple[str, str, bool]] = []
+
+    def put(self, key, data, *, durable=True):
+        self.journal.append(("put", key, durable))
+        return super().put(key, data, durable=durable)
+
+    def append_event(self, prefix, event, *, durable=True):
+        self.journal.append(("event", event.get("type", ""), durable))
+        return super().append_event(prefix, event, durable=durable)
+
+    def flush(self):
+        self.journal.append(("flush", "", True))
+        super().flush()
+
+
+def test_iteration_files_skip_fsync_and_every_checkpoint_makes_them_durable_first(tmp_path):
+    """An iteration's record and event are written without an fsync each (they cost a few ms, as
+    much as a small iteration); the writer flushes them before the checkpoint a resume relies on,
+    and at the end."""
+    from schemas.records import IterationRecord
+
+    store = _Journal(tmp_path / "store")
+    service = JobService(store, LocalJobQueue(), LocalEventBus())
+    record, _ = service.submit(JobSpec.model_validate(small_job("direct", iterations=5)))
+    service.states.transition(record.id, JobStatus.RUNNING, attempt="w#1")
+    writer = JobWriter(service.states, record.id, attempt="w#1")
+    for k in range(2):
+        writer.iteration(IterationRecord(iteration=k, loss=1.0, parameters=[0.5], updated_parameters=[0.5],
+                                         dz_dp=[0.1], learning_rate=0.1, seconds={}), None, None)
+    store.journal.clear()
+    writer.checkpoint(b"state", next_iteration=2)
+    assert store.journal[0][0] == "flush"                             # before the checkpoint's writes
+    assert not store._unflushed
+    writes = [(what, key, durable) for what, key, durable in store.journal if what != "flush"]
+    assert all(durable for _, _, durable in writes)                    # the checkpoint itself: fsynced
+    store.journal.clear()
+    writer.iteration(IterationRecord(iteration=2, loss=1.0, parameters=[0.5], updated_parameters=[0.5],
+                                     dz_dp=[0.1], learning_rate=0.1, seconds={}), None, None)
+    assert ("put", writer.files.iteration_key(2), False) in store.journal
+    assert ("event", "iteration", False) in store.journal
+    writer.finish({"status": "succeeded", "iterations": 3, "seconds": 1.0})
+    assert not store._unflushed

@@ -12,7 +12,7 @@ from services.jobs.service import Caller, JobService, TooManyJobs
 from services.jobs.state import Conflict, UnknownJob
 from services.queue.local import LocalEventBus, LocalJobQueue
 from services.store.local import FolderStore
-from tests.service import small_job
+from tests.support.service import small_job
 
 ALICE, BOB, ADMIN = Caller("alice"), Caller("bob"), Caller("root", admin=True)
 

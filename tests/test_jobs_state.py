@@ -97,7 +97,7 @@ def _machines(states):
     if isinstance(store, FolderStore):
         return states, JobStates(FolderStore(store.root))
     from services.store.s3 import S3Store
-    from tests.s3server import ACCESS_KEY, REGION, SECRET_KEY
+    from tests.support.s3server import ACCESS_KEY, REGION, SECRET_KEY
 
     return states, JobStates(S3Store(store.url, endpoint=store.endpoint, access_key_id=ACCESS_KEY,
                                      secret_access_key=SECRET_KEY, region=REGION))

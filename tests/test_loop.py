@@ -12,36 +12,12 @@ import time
 
 import numpy as np
 
-SMALL_TRAINING = {"residual_points": 512, "incident_samples": 4, "warmup_steps": 10, "steps_per_iteration": 2}
-
-
-def small_job(method="direct", iterations=6, **extra):
-    job = {
-        "scene": {"builtin": "cornell-box"},
-        "parameters": [{"key": "red.reflectance.value", "init": [0.2, 0.2, 0.2]}],
-        "targets": {"synthetic": {"values": {"red.reflectance.value": [0.57, 0.04, 0.04]}, "spp": 32}},
-        "method": method,
-        "iterations": iterations,
-        "learning_rate": 0.05,
-        "render": {"spp": 4, "gradient_spp": 4, "resolution": [16, 16]},
-        "training": SMALL_TRAINING,
-        "checkpoint_every": 2,
-        "seed": 3,
-    }
-    job.update(extra)
-    return job
-
-
-def _run(job, folder, **options):
-    """The job run in-process into ``folder``, as ``ndrf run`` does; returns its summary."""
-    from schemas.job import JobSpec
-    from services.jobs.local import run_local
-
-    return run_local(JobSpec.model_validate(job), folder, **options)
+from tests.support.jobs import SMALL_TRAINING, small_job  # noqa: F401 (also used by name)
+from tests.support.jobs import run_job as _run
 
 
 def test_run_writes_the_documented_job_folder(mi, tmp_path):
-    summary = _run(small_job("ndrf-rhs"), tmp_path)
+    summary = _run(small_job("ndrf-rhs", images_every=1), tmp_path)
     assert summary["status"] == "succeeded" and summary["iterations"] == 6
     for name in ("spec.json", "plan.json", "record.json", "events.jsonl", "summary.json", "checkpoints/latest.pt",
                  "targets/target-0.png", "targets/target-0.npy"):
@@ -49,9 +25,9 @@ def test_run_writes_the_documented_job_folder(mi, tmp_path):
     for k in range(6):
         it = tmp_path / "iterations" / f"{k:06d}"
         record = json.loads((it / "record.json").read_text())
-        assert set(record["seconds"]) == {"training", "gradient", "images"}
+        assert set(record["seconds"]) == {"training", "gradient", "step", "images"}
         assert len(record["dz_dp"]) == 3 and np.isfinite(record["loss"])
-        assert record["residual_primal"] is not None and record["residual_differential"] is not None
+        assert record["residual_radiance"] is not None and record["residual_differential"] is not None
         assert np.load(it / "gradients.npy").shape == (3, 16, 16, 3)
         assert (it / "render.png").is_file() and (it / "gradient-2.png").is_file()
     plan = json.loads((tmp_path / "plan.json").read_text())
@@ -71,10 +47,11 @@ def test_parameters_move_towards_the_target(mi, tmp_path):
 
 def test_same_seed_same_run(mi, tmp_path):
     """Equal seeds give equal runs. Not bit for bit within one process: Dr.Jit fuses a kernel
-    differently the first time an expression is traced, which changes float rounding (~1e-10)."""
+    differently the first time an expression is traced, which changes float rounding (~1e-10),
+    and the Gauss-Newton solve of the default optimizer amplifies it (~1e-7 relative)."""
     a = _run(small_job("ndrf-lhs", iterations=3), tmp_path / "a")
     b = _run(small_job("ndrf-lhs", iterations=3), tmp_path / "b")
-    assert np.allclose(a["final"], b["final"], rtol=1e-7, atol=0)
+    assert np.allclose(a["final"], b["final"], rtol=1e-6, atol=0)
     c = _run(small_job("ndrf-lhs", iterations=3, seed=4), tmp_path / "c")
     assert not np.allclose(c["final"], a["final"], rtol=1e-4, atol=0)
 

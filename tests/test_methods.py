@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from schemas.methods import Method
+from services.solver.estimators.render import PathDepth
 
 
 def test_every_public_method_has_a_class_declaring_its_name_and_fields():
@@ -24,11 +25,11 @@ def setting(mi):
     from schemas.solver import TrainingConfig
     from services.solver.estimators.methods import method_class
     from services.solver.estimators.problem import Problem
-    from services.solver.estimators.training import FieldTrainer
     from services.solver.scene.facts import probe_scene
     from services.solver.scene.load import load_scene
     from services.solver.scene.params import ParameterSet
     from services.solver.scene.planner import plan_effects
+    from services.solver.training.trainer import FieldTrainer
 
     scene = load_scene(builtin="cornell-box", resolution=(12, 10))
     problem = Problem(scene, ParameterSet(scene.params, ["red.reflectance.value", "light.emitter.radiance.value"]))
@@ -44,10 +45,10 @@ def setting(mi):
 @pytest.mark.parametrize("name", list(Method))
 def test_loss_gradient_is_the_contraction_of_the_images(setting, name):
     from services.solver.estimators.methods import contract, make_method
-    from services.solver.estimators.training import fields_of
+    from services.solver.training.trainer import fields_of
 
     problem, trainer, dz_dy = setting
-    method = make_method(name, problem.plan, max_depth=6)
+    method = make_method(name, problem.plan, PathDepth(6, None))
     fields = fields_of(trainer)
     direct = method.loss_gradient(problem, fields, dz_dy, spp=3, seed=11)
     contracted = contract(method.images(problem, fields, spp=3, seed=11), dz_dy)
@@ -71,17 +72,17 @@ def test_prb_fused_step_agrees_with_separate_candidate_and_adjoint_passes(settin
     """``prb`` renders the candidate and the adjoint in one differentiable render (independent
     seeds for the two passes); at 2048 spp it agrees with a separate path-traced candidate and
     adjoint pass to the Monte Carlo noise (5% allowed)."""
+    from services.solver.estimators.losses import image_loss
     from services.solver.estimators.methods import GradientMethod, make_method
     from services.solver.estimators.render import render
-    from services.solver.optimize.losses import image_loss
 
     problem, _, _ = setting
-    target = render(problem, spp=512, seed=99, max_depth=6) * 1.3       # a target brighter than the scene
+    target = render(problem, spp=512, seed=99, depth=PathDepth(6, None)) * 1.3       # a target brighter than the scene
     loss = lambda y: image_loss("l2", y, target)
-    prb = make_method("prb", problem.plan, max_depth=6)
-    fused = prb.candidate_and_gradient(problem, None, loss, spp=2048, gradient_spp=2048, seed=3, max_depth=6)
+    prb = make_method("prb", problem.plan, PathDepth(6, None))
+    fused = prb.candidate_and_gradient(problem, None, loss, spp=2048, gradient_spp=2048, seed=3, depth=PathDepth(6, None))
     separate = GradientMethod.candidate_and_gradient(prb, problem, None, loss, spp=2048, gradient_spp=2048, seed=4,
-                                                     max_depth=6)
+                                                     depth=PathDepth(6, None))
     print("fused", fused[0].mean(), fused[1], fused[2], "separate", separate[0].mean(), separate[1], separate[2])
     np.testing.assert_allclose(fused[0].mean(), separate[0].mean(), rtol=0.05)
     assert fused[1] == pytest.approx(separate[1], rel=0.05)
@@ -95,11 +96,11 @@ def test_prb_gradient_images_of_a_texture_parameter(mi):
     from services.solver.estimators.problem import Problem
     from services.solver.scene.load import load_scene
     from services.solver.scene.params import ParameterSet
-    from tests.scenes import poster_box
+    from tests.support.scenes import poster_box
 
     scene = load_scene(mitsuba_dict=poster_box(), resolution=(12, 10))
     problem = Problem(scene, ParameterSet(scene.params, ["back.bsdf.reflectance.data"]))
-    prb = make_method("prb", max_depth=4)
+    prb = make_method("prb", None, PathDepth(4, None))
     dz_dy = np.random.default_rng(1).normal(size=(10, 12, 3)).astype(np.float32)
     images = prb.images(problem, Fields(), spp=8, seed=2)
     assert images.shape == (6, 10, 12, 3) and np.all(np.abs(images).reshape(6, -1).sum(1) > 0)

@@ -9,6 +9,7 @@ import pytest
 
 from schemas.job import EffectOverrides
 from schemas.solver import TrainingConfig
+from services.solver.estimators.render import PathDepth
 
 SMALL = TrainingConfig(residual_points=1024, incident_samples=4)
 
@@ -17,11 +18,11 @@ def gradient(mi, scene_dict_or_name, keys, method, overrides=None, steps=0, reso
     """Plan (with overrides), train what the plan asks for, and return (plan, images)."""
     from services.solver.estimators.methods import make_method, method_class
     from services.solver.estimators.problem import Problem
-    from services.solver.estimators.training import fields_of, trainer_for
     from services.solver.scene.facts import probe_scene
     from services.solver.scene.load import load_scene
     from services.solver.scene.params import ParameterSet
     from services.solver.scene.planner import plan_effects
+    from services.solver.training.trainer import fields_of, trainer_for
 
     scene = (load_scene(builtin=scene_dict_or_name, resolution=resolution) if isinstance(scene_dict_or_name, str)
              else load_scene(mitsuba_dict=scene_dict_or_name, resolution=resolution))
@@ -37,7 +38,7 @@ def gradient(mi, scene_dict_or_name, keys, method, overrides=None, steps=0, reso
 
 
 def test_no_interreflection_one_bounce_equals_forcing_both_fields_on(mi):
-    from tests.scenes import sky_plane
+    from tests.support.scenes import sky_plane
 
     plan, trainer, planned = gradient(mi, sky_plane(), ["plane-bsdf.reflectance.value"], "ndrf-rhs")
     assert trainer is None and not plan.differential_field.value
@@ -106,7 +107,8 @@ def test_unreachable_parameter_is_dropped_and_really_has_zero_gradient(mi):
     assert trainer.differential.channels == 3                      # one channel per red-wall scalar
     assert np.all(planned[3:] == 0)
     scene = load_scene(builtin="closet-box", resolution=(24, 24))
-    reference = make_method("prb").images(Problem(scene, ParameterSet(scene.params, keys)), Fields(), spp=64, seed=3)
+    reference = make_method("prb", None, PathDepth(12, None)).images(Problem(scene, ParameterSet(scene.params, keys)),
+                                                                     Fields(), spp=64, seed=3)
     assert np.all(reference[3:] == 0) and np.abs(reference[:3]).sum() > 0
 
 

@@ -1,4 +1,4 @@
-"""The residual pool (services/solver/estimators/pool.py): pooled batches are the batches fresh sampling
+"""The residual pool (services/solver/training/pool.py): pooled batches are the batches fresh sampling
 draws with the same seeds, stay exact after a parameter step when sampling does not depend on the
 parameter, and unbiased (equal in expectation) when it does; batches are redrawn on schedule and
 re-evaluated only when the parameters changed."""
@@ -20,7 +20,7 @@ def _problem(mi, scene_dict, keys):
 
 
 def _rough_plane(alpha):
-    from tests.scenes import sky_plane
+    from tests.support.scenes import sky_plane
 
     d = sky_plane()
     d["plane-bsdf"] = {"type": "roughconductor", "material": "Al", "distribution": "ggx", "alpha": alpha}
@@ -28,10 +28,10 @@ def _rough_plane(alpha):
 
 
 def test_a_pooled_batch_is_the_fresh_batch_of_its_seed_before_and_after_a_parameter_step(mi):
-    from services.solver.estimators.pool import ResidualPool
-    from services.solver.estimators.residuals import draw_batch
     from services.solver.seeds import derive_seed
-    from tests.scenes import sky_plane
+    from services.solver.training.pool import ResidualPool
+    from services.solver.training.residuals import draw_batch
+    from tests.support.scenes import sky_plane
 
     problem = _problem(mi, sky_plane([0.2, 0.5, 0.8]), ["plane-bsdf.reflectance.value"])
     pool = ResidualPool(problem, 256, 4, chunks=2, reuse=3, derivatives=True, fields=[], seed=5)
@@ -57,7 +57,7 @@ def test_geometry_sampled_for_another_roughness_stays_an_unbiased_estimate(mi):
     """Directions sampled from the GGX lobe of roughness 0.4, re-evaluated at 0.15 (the pdf they
     were drawn with stays a valid importance weight), against fresh samples at 0.15: the incident
     integral under a constant sky (the directional albedo) agrees within 4 standard errors."""
-    from services.solver.estimators.residuals import draw_geometry, evaluate_batch
+    from services.solver.training.residuals import draw_geometry, evaluate_batch
 
     problem = _problem(mi, _rough_plane(0.4), ["plane-bsdf.alpha.value"])
     old = draw_geometry(problem, 4096, 16, seed=11)

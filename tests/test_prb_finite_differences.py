@@ -12,14 +12,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from services.solver.estimators.render import PathDepth
+
 
 @pytest.mark.parametrize("key, component", [("red.reflectance.value", 0), ("light.emitter.radiance.value", 1)])
 def test_prb_loss_gradient_matches_central_differences(mi, key, component):
+    from services.solver.estimators.losses import image_loss
     from services.solver.estimators.methods import Fields
     from services.solver.estimators.methods.prb import Prb
     from services.solver.estimators.problem import Problem
     from services.solver.estimators.render import render
-    from services.solver.optimize.losses import image_loss
     from services.solver.scene.load import load_scene
     from services.solver.scene.params import ParameterSet
 
@@ -27,15 +29,15 @@ def test_prb_loss_gradient_matches_central_differences(mi, key, component):
     params = ParameterSet(scene.params, [key])
     problem = Problem(scene, params)
     p0 = params.values()
-    target = render(problem, spp=256, seed=1)
+    target = render(problem, spp=256, seed=1, depth=PathDepth(12, None))
     p = p0.copy()
     p[component] *= 0.6                                 # away from the target: a clear gradient
     params.assign(p)
 
     spp, seed = 1024, 7
-    y = render(problem, spp=spp, seed=seed)
+    y = render(problem, spp=spp, seed=seed, depth=PathDepth(12, None))
     _, dz_dy = image_loss("l2", y, target)
-    adjoint = Prb(max_depth=12).loss_gradient(problem, Fields(), dz_dy, spp=spp, seed=seed)[component]
+    adjoint = Prb(depth=PathDepth(12, None)).loss_gradient(problem, Fields(), dz_dy, spp=spp, seed=seed)[component]
 
     h = 0.02 * p[component]
     losses = []
@@ -43,7 +45,7 @@ def test_prb_loss_gradient_matches_central_differences(mi, key, component):
         q = p.copy()
         q[component] += sign * h
         params.assign(q)
-        losses.append(image_loss("l2", render(problem, spp=spp, seed=seed), target)[0])
+        losses.append(image_loss("l2", render(problem, spp=spp, seed=seed, depth=PathDepth(12, None)), target)[0])
     finite = (losses[0] - losses[1]) / (2 * h)
     print(f"{key}[{component}]: adjoint {adjoint:.6e} finite differences {finite:.6e}")
     assert np.sign(adjoint) == np.sign(finite)

@@ -11,7 +11,7 @@ import pytest
 
 from services.queue.base import Renewal
 from services.queue.local import LocalEventBus, LocalJobQueue, LocalStreamSlots
-from tests.service import RedisServer
+from tests.support.service import RedisServer
 
 LEASE = 0.6
 

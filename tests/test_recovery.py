@@ -2,8 +2,8 @@
 
 The jobs are the README's own example files, so the README's claims are what is tested:
 
-* ``examples/demo.json`` (Cornell box, ``ndrf-rhs``): the red wall albedo from 0.2 grey to within
-  0.02 per channel.
+* ``examples/demo.json`` (Cornell box, the default recipe): the red wall albedo from 0.2 grey to
+  within 0.02 per channel.
 * ``examples/hidden-object.json`` (the paper's Fig. 5): ``ndrf-rhs`` recovers the albedo of a
   sphere the camera never sees to within 0.05 per channel; ``radiance-cache`` and ``direct`` see a
   zero gradient and do not move it at all.
@@ -12,14 +12,15 @@ The jobs are the README's own example files, so the README's claims are what is 
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tests.support.cluster import ROOT
+
 pytestmark = pytest.mark.slow
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+EXAMPLES = ROOT / "examples"
 
 
 def _example(name, **overrides):
@@ -39,7 +40,7 @@ def _run(job, folder):
 
 def test_demo_recovers_the_red_wall(mi, tmp_path):
     final, target = _run(_example("demo.json"), tmp_path)
-    print("demo (cornell-box, ndrf-rhs) final", final.round(4))
+    print("demo (cornell-box, default recipe) final", final.round(4))
     assert np.all(np.abs(final - target) < 0.02)
 
 

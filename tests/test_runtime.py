@@ -9,7 +9,7 @@ from fastapi.testclient import TestClient
 
 from services.runtime import build_runtime
 from services.settings import Settings
-from tests.service import wait_until
+from tests.support.service import wait_until
 
 
 class _Flaky:

@@ -20,7 +20,7 @@ def _load(mi, scene_dict):
 
 def test_residual_domain_excludes_emitters_and_mirrors(mi):
     from services.solver.sampling.surface import SurfaceSampler
-    from tests.scenes import area_probe
+    from tests.support.scenes import area_probe
 
     sampler = SurfaceSampler(_load(mi, area_probe()).scene)
     assert sorted(sampler.shape_ids) == ["ball", "floor"]
@@ -34,7 +34,7 @@ def test_area_sampling_integrates_height_and_cosine_exactly(mi):
 
     from services.solver.sampling.camera import make_sampler
     from services.solver.sampling.surface import SurfaceSampler
-    from tests.scenes import area_probe
+    from tests.support.scenes import area_probe
 
     surface = SurfaceSampler(_load(mi, area_probe()).scene)
     n = 1 << 20
@@ -55,16 +55,16 @@ def test_mis_incident_integral_under_a_constant_sky(mi):
     ∂L_r/∂ρ_c = 1 in channel c. The MIS estimate (emitter + BSDF sampling) of Eq. 9 and its
     forward-mode derivative must reproduce both."""
     from services.solver.estimators.problem import Problem
-    from services.solver.estimators.residuals import differential_rhs, draw_batch, primal_rhs
     from services.solver.scene.params import ParameterSet
-    from tests.scenes import sky_plane
+    from services.solver.training.residuals import differential_rhs, draw_batch, radiance_rhs
+    from tests.support.scenes import sky_plane
 
     albedo = np.array([0.2, 0.5, 0.8])
     scene = _load(mi, sky_plane(albedo))
     problem = Problem(scene, ParameterSet(scene.params, ["plane-bsdf.reflectance.value"]))
     batch = draw_batch(problem, 4096, 64, seed=3, derivatives=True)
     assert batch.hit_index.numel() == 0            # nothing to hit but the sky
-    l_r = primal_rhs(batch, None).mean(0).numpy()
+    l_r = radiance_rhs(batch, None).mean(0).numpy()
     assert l_r == pytest.approx(albedo, rel=0.015)
     d_l = differential_rhs(batch, None, None, problem.layout).mean(0).numpy()   # (P, 3)
     assert d_l == pytest.approx(np.eye(3), abs=0.015)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.scenes import QUAD_OBJ, SELF_CONTAINED_XML, UPLOAD_MATERIALS, UPLOAD_XML, upload_files
+from tests.support.scenes import QUAD_OBJ, SELF_CONTAINED_XML, UPLOAD_MATERIALS, UPLOAD_XML, upload_files
 
 
 def test_builtin_scenes_load_with_their_parameters(mi):
@@ -37,7 +37,7 @@ def test_the_multi_view_rooms_have_eight_cameras_and_differ_by_the_front_wall(mi
 def test_staged_upload_with_include_and_mesh_relative_to_it(mi, tmp_path):
     from schemas.job import XmlScene
     from services.solver.scene.load import load_scene
-    from services.uploads.sandbox import UploadLimits
+    from services.uploads.scene import UploadLimits
     from services.uploads.staging import stage_scene
 
     (tmp_path / "scene").mkdir()
@@ -55,7 +55,7 @@ def test_staged_upload_with_include_and_mesh_relative_to_it(mi, tmp_path):
 def test_a_self_contained_upload_without_files_is_staged_and_loads(mi, tmp_path):
     from schemas.job import XmlScene
     from services.solver.scene.load import load_scene
-    from services.uploads.sandbox import UploadLimits
+    from services.uploads.scene import UploadLimits
     from services.uploads.staging import stage_scene
 
     scene_file = stage_scene(XmlScene(xml=SELF_CONTAINED_XML, files={}), tmp_path / "not-yet-there", UploadLimits())

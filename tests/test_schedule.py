@@ -1,8 +1,8 @@
-"""Adaptive training steps (services/solver/estimators/schedule.py) on scripted residual norms."""
+"""Adaptive training steps (services/solver/training/schedule.py) on scripted residual norms."""
 
 from __future__ import annotations
 
-from services.solver.estimators.training import StepStats
+from services.solver.training.steps import StepStats
 
 
 class ScriptedTrainer:
@@ -17,7 +17,7 @@ class ScriptedTrainer:
         batch = (s % self.chunks, s - ((s // self.chunks) % self.reuse) * self.chunks)
         loss, res = self.script(s, batch)
         self.steps += 1
-        return StepStats(loss, loss, 0.0, primal_residual=res, differential_residual=res, batch=batch)
+        return StepStats(loss, loss, 0.0, radiance_residual=res, differential_residual=res, batch=batch)
 
     def train(self, n, on_step=None):
         return [self.step() for _ in range(n)]
@@ -25,7 +25,7 @@ class ScriptedTrainer:
 
 def _schedule(**overrides):
     from schemas.solver import TrainingConfig
-    from services.solver.estimators.schedule import StepSchedule
+    from services.solver.training.schedule import StepSchedule
 
     config = dict(adaptive_steps=True, warmup_steps=2000, steps_per_iteration=20, min_warmup_steps=40,
                   plateau_window=20, plateau_tolerance=0.05)

@@ -3,36 +3,12 @@ real Redis server started by the tests (no persistence, so it can be restarted e
 
 from __future__ import annotations
 
-import json
 import signal
 import time
-import urllib.request
 
 import numpy as np
 
-from tests.service import small_job, start_api, wait_until
-
-
-def read_sse(api, job_id, timeout=120.0, last_event_id=None):
-    """All events of a job until its final status (the server closes the stream then)."""
-    req = urllib.request.Request(f"{api.base}/v1/jobs/{job_id}/events")
-    if last_event_id is not None:
-        req.add_header("Last-Event-ID", str(last_event_id))
-    if api.key:
-        req.add_header("Authorization", f"Bearer {api.key}")
-    events, current = [], {}
-    with urllib.request.urlopen(req, timeout=timeout) as resp:
-        assert resp.headers["Content-Type"].startswith("text/event-stream")
-        for raw in resp:
-            line = raw.decode().rstrip("\n")
-            if line.startswith("data: "):
-                current["data"] = json.loads(line[6:])
-            elif line.startswith("id: "):
-                current["id"] = int(line[4:])
-            elif line == "" and "data" in current:
-                events.append(current)
-                current = {}
-    return events
+from tests.support.service import read_sse, small_job, start_api, wait_until
 
 
 def test_embedded_submit_stream_succeed_and_fetch_images(tmp_path, store_env):
@@ -67,20 +43,23 @@ def test_embedded_submit_stream_succeed_and_fetch_images(tmp_path, store_env):
         proc.kill(signal.SIGTERM)
 
 
-def test_an_auto_job_says_what_it_picked_through_the_api(tmp_path, store_env):
-    """``"method": "auto"`` over HTTP: the trial is announced on the stream, the record keeps what
-    was asked, the plan says what ran and why."""
+def test_an_auto_job_says_what_it_chose_through_the_api(tmp_path, store_env):
+    """``"method": "auto"`` over HTTP: the record keeps what was asked, the plan says what ran and
+    why, each decision with its reason, and the iteration records name their views."""
     proc, api = start_api(tmp_path, store_env)
     try:
         status, _, accepted = api.json("POST", "/v1/jobs", small_job("auto", iterations=2))
         assert status == 202
         events = [e["data"] for e in read_sse(api, accepted["id"], timeout=300)]
         kinds = [e["type"] for e in events]
-        assert "auto" in kinds and kinds.index("auto") < kinds.index("plan") and events[-1]["status"] == "succeeded"
+        assert "plan" in kinds and events[-1]["status"] == "succeeded"
         _, _, job = api.json("GET", f"/v1/jobs/{accepted['id']}")
         assert job["method"] == "auto"
-        assert job["plan"]["method"] == job["plan"]["auto"]["picked"] in ("prb", "ndrf-lhs", "ndrf-rhs")
-        assert "predicted fastest" in job["plan"]["auto"]["reason"]
+        recipe = job["plan"]["recipe"]
+        assert job["plan"]["method"] == recipe["method"] == "prb" and recipe["optimizer"] == "levenberg-marquardt"
+        assert {d["what"] for d in recipe["decisions"]} >= {"method", "optimizer", "depth"}
+        assert all(d["reason"] for d in recipe["decisions"])
+        assert [e["views"] for e in events if e["type"] == "iteration"] == [[0], [0]]
     finally:
         proc.kill(signal.SIGTERM)
 
@@ -114,6 +93,33 @@ def test_cancel_stops_a_running_job_and_keeps_its_artifacts(stack):
     _, _, queued = api.json("POST", "/v1/jobs", small_job(iterations=400))      # cancel while queued/just started
     api.json("POST", f"/v1/jobs/{queued['id']}/cancel")
     assert api.wait_status(queued["id"], {"canceled"}, 60)["status"] == "canceled"
+
+
+def test_the_dashboard_can_ask_a_running_job_for_its_images(stack):
+    """``POST /v1/jobs/{id}/images`` through a real worker and its sandboxed child (SIGUSR2): the
+    next iteration writes every view's render and the gradient images, off the job's schedule."""
+    api = stack.api
+    stack.add_worker("w1")
+    _, _, accepted = api.json("POST", "/v1/jobs", small_job(iterations=400, images_every=100000))
+    job_id = accepted["id"]
+    wait_until(lambda: (api.json("GET", f"/v1/jobs/{job_id}")[2].get("iteration") or 0) >= 2, 120, 0.2,
+               what="three iterations")
+    status, _, job = api.json("POST", f"/v1/jobs/{job_id}/images")
+    assert status == 202 and job["images_requested"]
+    asked_at = job["iteration"]
+
+    def written() -> list[int]:
+        _, _, records = api.json("GET", f"/v1/jobs/{job_id}/iterations")
+        return [r["iteration"] for r in records if r["images"] and r["iteration"] > asked_at]
+
+    wait_until(lambda: written(), 60, 0.2, what="an iteration with images")
+    k = written()[0]
+    assert k < 399                                                     # not the last iteration's own images
+    assert stack.store.exists(f"{job_id}/iterations/{k:06d}/gradients.npy")
+    assert not api.json("GET", f"/v1/jobs/{job_id}")[2]["images_requested"]   # answered: the request is cleared
+    api.json("POST", f"/v1/jobs/{job_id}/cancel")
+    api.wait_status(job_id, {"canceled"}, 60)
+    assert api.json("POST", f"/v1/jobs/{job_id}/images")[0] == 409      # no next iteration
 
 
 def test_two_workers_share_the_queue(stack):

@@ -14,8 +14,15 @@ import urllib.request
 import numpy as np
 import pytest
 
-from tests.service import Process, RedisServer, open_test_store, small_job, start_api, wait_until
-from tests.test_service import read_sse
+from tests.support.service import (
+    Process,
+    RedisServer,
+    open_test_store,
+    read_sse,
+    small_job,
+    start_api,
+    wait_until,
+)
 
 pytestmark = pytest.mark.slow
 

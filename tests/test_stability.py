@@ -29,7 +29,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from schemas.methods import Method
-from tests import hard_scenes
+from services.solver.estimators.render import PathDepth
+from tests.support import hard_scenes
 
 METHODS = tuple(m.value for m in Method)
 #: Where the guards count what they sanitized (``Problem.count_sanitized``).
@@ -97,7 +98,7 @@ def assert_finite_run(summary, records):
         assert len(records) == 3
     assert summary["final"] is None or np.all(np.isfinite(summary["final"]))
     for record in records:
-        for field in ("loss", "residual_primal", "residual_differential"):
+        for field in ("loss", "residual_radiance", "residual_differential"):
             value = record.get(field)
             assert value is None or np.isfinite(value), (field, record)
         for field in ("parameters", "updated_parameters", "dz_dp"):
@@ -152,7 +153,7 @@ def test_gradients_and_residuals_stay_finite(metal_problem, alpha, albedo, eleva
 
     from services.solver.backend import use_mitsuba
     from services.solver.estimators.methods import Fields, make_method
-    from services.solver.estimators.residuals import differential_rhs, draw_batch, primal_rhs
+    from services.solver.training.residuals import differential_rhs, draw_batch, radiance_rhs
 
     mi = use_mitsuba()
     problem = metal_problem
@@ -164,12 +165,12 @@ def test_gradients_and_residuals_stay_finite(metal_problem, alpha, albedo, eleva
     sensor.update()
 
     batch = draw_batch(problem, 256, 4, seed=int(alpha * 1e6) % 1000, derivatives=True)
-    assert torch_finite(primal_rhs(batch, None)) and torch_finite(differential_rhs(batch, None, None, problem.layout))
+    assert torch_finite(radiance_rhs(batch, None)) and torch_finite(differential_rhs(batch, None, None, problem.layout))
     assert batch.sanitized <= 0.01 * 256 * 4, batch.sanitized          # the guard is not hiding a systematic NaN
     problem.sanitized.clear()
     assert np.all(np.isfinite(make_method("direct").images(problem, Fields(), spp=2, seed=1)))
     assert problem.sanitized.get("camera", 0) <= 0.01 * 12 * 12 * 2, problem.sanitized
-    assert np.all(np.isfinite(make_method("prb", max_depth=4).images(problem, Fields(), spp=2, seed=1)))
+    assert np.all(np.isfinite(make_method("prb", None, PathDepth(4, None)).images(problem, Fields(), spp=2, seed=1)))
 
 
 def torch_finite(t) -> bool:

@@ -1,5 +1,5 @@
 """The artifact stores: the folder store and the S3 store (against moto's S3 server on loopback,
-tests/s3server.py) pass the same tests where their semantics agree: atomic writes,
+tests/support/s3server.py) pass the same tests where their semantics agree: atomic writes,
 compare-and-set, event logs, listing, deleting, streaming. Then what only one of them has."""
 
 from __future__ import annotations
@@ -217,7 +217,7 @@ def test_folder_a_full_disk_is_a_store_full_error(tmp_path, monkeypatch):
 def _second_machine(store):
     """Another S3Store on the same bucket and prefix: another machine, with its own caches."""
     from services.store.s3 import S3Store
-    from tests.s3server import ACCESS_KEY, REGION, SECRET_KEY
+    from tests.support.s3server import ACCESS_KEY, REGION, SECRET_KEY
 
     return S3Store(store.url, endpoint=store.endpoint, access_key_id=ACCESS_KEY, secret_access_key=SECRET_KEY,
                    region=REGION)
@@ -257,7 +257,7 @@ def test_s3_replay_lists_after_the_last_event_id(s3_store):
 
 def test_s3_objects_carry_their_content_type_and_presigned_urls_work(s3_store):
     from services.store.s3 import S3Store
-    from tests.s3server import ACCESS_KEY, REGION, SECRET_KEY
+    from tests.support.s3server import ACCESS_KEY, REGION, SECRET_KEY
 
     s3_store.put("job/iterations/000001/render.png", b"\x89PNG" + b"0" * 2000)
     assert s3_store.redirect_url("job/iterations/000001/render.png") is None    # off by default
@@ -304,12 +304,14 @@ def test_the_s3_client_is_imported_only_when_an_s3_store_is_configured(tmp_path)
     import subprocess
     import sys
 
+    from tests.support.cluster import ROOT
+
     code = ("import sys; from services.settings import Settings; from services.runtime import open_store; "
             "import api.app, worker.main; open_store(Settings(store=sys.argv[1])); "
             "print(sorted(m for m in ('obstore', 'boto3', 's3fs', 'moto') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "runs")], capture_output=True, text=True,
-                         check=True, cwd=os.path.dirname(os.path.dirname(__file__))).stdout
+                         check=True, cwd=ROOT).stdout
     assert out.strip() == "[]"
     out = subprocess.run([sys.executable, "-c", code, "s3://ndrf/x"], capture_output=True, text=True, check=True,
-                         cwd=os.path.dirname(os.path.dirname(__file__))).stdout
+                         cwd=ROOT).stdout
     assert out.strip() == "['obstore']"

@@ -16,8 +16,8 @@ from services.uploads.images import (
     check_image,
     image_header,
 )
-from services.uploads.sandbox import InvalidJob
-from tests.payloads import exr_header, jpeg, npy, png
+from services.uploads.scene import InvalidJob
+from tests.support.payloads import exr_header, jpeg, npy, png
 
 
 def test_png_bomb_is_refused_from_its_header():

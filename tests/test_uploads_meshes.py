@@ -10,8 +10,8 @@ import pytest
 
 from services.uploads import meshes
 from services.uploads.meshes import MeshLimits, MeshSummary, check_mesh
-from services.uploads.sandbox import InvalidJob
-from tests.payloads import OBJ, QUAD, TRIANGLES, ply_ascii, ply_binary, ply_header, serialized, serialized_shape
+from services.uploads.scene import InvalidJob
+from tests.support.payloads import OBJ, QUAD, TRIANGLES, ply_ascii, ply_binary, ply_header, serialized, serialized_shape
 
 DEFAULTS = MeshLimits()
 

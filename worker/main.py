@@ -23,6 +23,7 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 
+from schemas.outcomes import Outcome
 from schemas.records import ACTIVE, JobStatus
 from services.jobs.runner import AttemptResult, AttemptRunner
 from services.jobs.service import JobService
@@ -142,10 +143,10 @@ class Worker:
         log.info("worker %s runs job %s (attempt %s, delivery %d, took over from %s)", self.name, lease.job_id,
                  attempt, lease.delivery, record.attempt if running else None)
         result = self._run_with_lease(lease, attempt)
-        if result.status == "fenced":
+        if result.outcome is Outcome.FENCED:
             return self._fenced(lease, attempt)
-        if result.status == JobStatus.QUEUED.value:
-            return self._ack(lease, attempt, requeue=True)   # interrupted: hand it back at once
+        if result.outcome is Outcome.INTERRUPTED:
+            return self._ack(lease, attempt, requeue=True)   # hand it back at once
         self._ack(lease, attempt)
 
     def _fenced(self, lease: Lease, attempt: str) -> None:
@@ -171,15 +172,15 @@ class Worker:
             log.warning("first lease renewal of job %s failed: %s", lease.job_id, exc)
             first = Renewal.KEPT
         if not first:
-            return AttemptResult("fenced", "the lease was lost before the attempt started")
+            return AttemptResult(Outcome.FENCED, "the lease was lost before the attempt started")
         heartbeat = threading.Thread(target=self._heartbeat, args=(lease, attempt, lost, done), daemon=True,
                                      name=f"lease-{lease.job_id}")
         heartbeat.start()
 
-        def stop() -> str | None:
+        def stop() -> Outcome | None:
             if self.service.cancel_requested(lease.job_id):
-                return "canceled"
-            return "interrupted" if self.stopping.is_set() else None
+                return Outcome.CANCELED
+            return Outcome.INTERRUPTED if self.stopping.is_set() else None
 
         try:
             return self.runner.run(lease.job_id, attempt, lost=lost, stop=stop)

@@ -6,9 +6,9 @@ import logging
 from typing import Annotated
 
 import anyio
-from fastapi import APIRouter, Depends, Header, Query, Response
+from fastapi import APIRouter, Header, Query, Response
 
-from api.deps import CallerDep, ReaderDep, RuntimeDep, SettingsDep, not_found, record_or_404, require_caller
+from api.deps import CallerDep, ReaderDep, RuntimeDep, SettingsDep, not_found, record_or_404
 from api.problems import ProblemDetails, ProblemError
 from api.views import job_public
 from schemas.errors import InvalidJob
@@ -43,7 +43,7 @@ async def submit_job(spec: JobSpec, response: Response, runtime: RuntimeDep, cal
                                                                    description="Retrying with the same key returns "
                                                                                "the same job (keys are per API key).")]
                      = None):
-    """Validate a job (schema, caps, sandbox, scene and targets) and queue it. Answers ``202`` with
+    """Validate a job (schema, caps, upload checks, scene and targets) and queue it. Answers ``202`` with
     the job id and a ``Location`` header; a bad job is a ``422`` naming the field."""
     service = runtime.service
     if idempotency_key:
@@ -75,7 +75,7 @@ def _accepted(response: Response, job_id: str, status: JobStatus, spec: JobSpec,
                                                         "iterations": f"{base}/iterations", "cancel": f"{base}/cancel"})
 
 
-@router.get("", response_model=JobPage, summary="List jobs", dependencies=[Depends(require_caller)])
+@router.get("", response_model=JobPage, summary="List jobs")
 def list_jobs(runtime: RuntimeDep, settings: SettingsDep, caller: CallerDep,
               status: Annotated[JobStatus | None, Query(description="Only jobs with this status.")] = None,
               limit: Annotated[int, Query(ge=1, le=200, description="Page size.")] = 50,
@@ -109,6 +109,22 @@ def cancel_job(job_id: str, runtime: RuntimeDep, settings: SettingsDep, caller: 
         raise not_found(job_id) from None
     except Conflict as exc:
         raise ProblemError(409, "Conflict", str(exc), slug="job-finished") from None
+    return job_public(record, runtime.service.states.files(job_id), settings)
+
+
+@router.post("/{job_id}/images", status_code=202, response_model=JobPublic,
+             responses={404: {"model": ProblemDetails}, 409: {"model": ProblemDetails}},
+             summary="Write images at the next iteration")
+def request_images(job_id: str, runtime: RuntimeDep, settings: SettingsDep, caller: CallerDep):
+    """The running job writes the renders of every view and the gradient images at its next
+    iteration, whatever its images schedule (by default they take at most 5% of the run). A job
+    that is not running is a ``409``."""
+    try:
+        record = runtime.service.request_images(job_id, caller)
+    except UnknownJob:
+        raise not_found(job_id) from None
+    except Conflict as exc:
+        raise ProblemError(409, "Conflict", str(exc), slug="job-not-running") from None
     return job_public(record, runtime.service.states.files(job_id), settings)
 
 

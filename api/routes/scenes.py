@@ -63,5 +63,5 @@ async def builtin_parameters(name: str, runtime: RuntimeDep):
 @router.post("/parameters", response_model=SceneParameters, responses={422: {"model": ProblemDetails}},
              summary="Parameters of an uploaded scene")
 async def uploaded_parameters(scene: XmlScene, runtime: RuntimeDep):
-    """The same sandbox as job submission applies (only the uploaded files can be read)."""
+    """The same upload checks as job submission apply (only the uploaded files can be read)."""
     return await _describe(scene, runtime)

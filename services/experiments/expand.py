@@ -19,7 +19,6 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-from schemas.errors import InvalidJob
 from schemas.experiments import RandomChoice, RandomRange
 
 SEED = "seed"
@@ -220,7 +219,3 @@ def merge(sweep: dict, more: dict) -> dict:
             raise InvalidExperiment("samples", "this experiment has no random fields")
         merged["samples"] = merged.get("samples", 1) + more["samples"]
     return merged
-
-
-def as_invalid_job(error: InvalidJob) -> InvalidExperiment:
-    return InvalidExperiment(error.field, error.message)

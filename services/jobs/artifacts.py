@@ -10,16 +10,24 @@ through :class:`services.jobs.state.JobStates`. The same writer serves the worke
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 
 import numpy as np
 
+from schemas.outcomes import Outcome
 from schemas.records import IterationRecord, JobStatus
 from services.jobs.state import Fenced, JobStates
 from services.store.images import gradient_png, npy_bytes, srgb_png
 from services.store.job import JobFiles
 
 log = logging.getLogger(__name__)
+
+
+#: The job record's ``iteration`` is brought up to date at most this often (and at every
+#: checkpoint, images request and the end): each update is a read and a compare-and-set write of
+#: the record, a third of what writing an iteration costs. Clients follow iterations on the events.
+RECORD_SECONDS = 0.5
 
 
 class BudgetExceeded(Exception):
@@ -42,28 +50,32 @@ class JobWriter:
         self.written = self._existing_bytes() if byte_budget is not None else 0
         self.stop = stop
         self.labels: list[str] = []
+        self.asked_for_images = False  # the record's images_requested, as the last fence check read it
+        self.reported: int | None = None   # the last iteration reported; the record's may lag (RECORD_SECONDS)
+        self.recorded_at = float("-inf")
 
     # ------------------------------------------------------------------ fence
 
     def guard(self) -> None:
         """Raise :class:`Fenced` unless the record still names this attempt."""
         if self.attempt is not None:
-            owner = self.states.get(self.job_id).attempt
-            if owner != self.attempt:
-                raise Fenced(self.job_id, self.attempt, owner)
+            record = self.states.get(self.job_id)
+            self.asked_for_images = record.images_requested
+            if record.attempt != self.attempt:
+                raise Fenced(self.job_id, self.attempt, record.attempt)
 
-    def _put(self, key: str, data: bytes) -> None:
+    def _put(self, key: str, data: bytes, *, durable: bool = True) -> None:
         if self.byte_budget is not None and self.written + len(data) > self.byte_budget:
             raise BudgetExceeded(f"the job's files would exceed its disk budget of {self.byte_budget >> 20} MiB "
                                  f"(NDRF_MAX_JOB_BYTES); write images less often (images_every)")
-        self.files.store.put(key, data)
+        self.files.store.put(key, data, durable=durable)
         self.written += len(data)
 
     def _existing_bytes(self) -> int:
         return self.files.store.prefix_bytes(self.files.prefix)
 
-    def event(self, kind: str, **payload) -> dict:
-        return self.states.event(self.job_id, {"type": kind, "attempt": self.attempt, **payload})
+    def event(self, kind: str, *, durable: bool = True, **payload) -> dict:
+        return self.states.event(self.job_id, {"type": kind, "attempt": self.attempt, **payload}, durable=durable)
 
     # --------------------------------------------------------------- reports
 
@@ -95,9 +107,25 @@ class JobWriter:
             scales = self._gradient_images(k, sensor, images)
             if record.preview_scales is None:  # the first sensor's, as the previews the dashboard shows
                 record = record.model_copy(update={"preview_scales": scales})
-        self._put(self.files.iteration_key(k), _json(record.model_dump(mode="json")))
-        self.states.transition(self.job_id, fence=self.attempt, iteration=k)
-        self.event("iteration", **record.model_dump(mode="json"))
+        # Not fsynced one by one: the next checkpoint flushes them first (ArtifactStore.put)
+        self._put(self.files.iteration_key(k), _json(record.model_dump(mode="json")), durable=False)
+        self.reported = k
+        if record.images or self.asked_for_images or time.monotonic() - self.recorded_at >= RECORD_SECONDS:
+            self._record_iteration(images_written=record.images)
+        self.event("iteration", durable=False, **record.model_dump(mode="json"))
+
+    def _record_iteration(self, images_written: bool = False) -> None:
+        """The job record's ``iteration`` catches up with the last reported one (and a request
+        for images is cleared once they are written)."""
+        if self.reported is None:
+            return
+        if images_written:
+            after = self.states.transition(self.job_id, fence=self.attempt, iteration=self.reported,
+                                           images_requested=False)
+        else:
+            after = self.states.transition(self.job_id, fence=self.attempt, iteration=self.reported)
+        self.asked_for_images = after.images_requested
+        self.recorded_at = time.monotonic()
 
     def _gradient_images(self, k: int, sensor: int, images: np.ndarray) -> list[float]:
         """``gradients.npy`` and one PNG preview per scalar; returns the preview scales."""
@@ -112,6 +140,8 @@ class JobWriter:
 
     def checkpoint(self, state: bytes, next_iteration: int) -> None:
         self.guard()
+        self.files.store.flush()   # every record a resume from this checkpoint keeps is durable first
+        self._record_iteration()
         # The info first: a resume drops records after the info's iteration and continues from the
         # blob's. Killed between the two writes, an info ahead of the blob only means an iteration is
         # recomputed (same seeds, its record overwritten); an info behind it lost that record.
@@ -121,6 +151,10 @@ class JobWriter:
 
     def should_stop(self):  # -> StopReason | None, as RunReporter declares
         return self.stop()
+
+    def images_requested(self) -> bool:
+        """The record's ``images_requested`` as this attempt last read it (no extra read)."""
+        return self.asked_for_images
 
     # ----------------------------------------------------------------- the end
 
@@ -142,7 +176,9 @@ class JobWriter:
         """Record how the attempt ended: ``interrupted`` hands the job back (queued); anything
         else finishes it. Returns the new status."""
         data = outcome if isinstance(outcome, dict) else vars(outcome)
-        if data["status"] == "interrupted":
+        self.files.store.flush()
+        self._record_iteration()
+        if data["status"] == Outcome.INTERRUPTED:
             self.states.transition(self.job_id, JobStatus.QUEUED, fence=self.attempt, expect={JobStatus.RUNNING},
                                    note="interrupted: the worker stopped; resumes from its checkpoint")
             return JobStatus.QUEUED

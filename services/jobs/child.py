@@ -8,7 +8,8 @@
 ``run``       run the job (:class:`services.solver.optimize.loop.InverseRenderingRun`), forwarding
            every report as a frame (``plan``, ``targets``, ``progress``, ``iteration``,
            ``checkpoint``) and ending with ``outcome``. SIGUSR1 asks it to cancel, SIGTERM to stop
-           and checkpoint (the job goes back to the queue).
+           and checkpoint (the job goes back to the queue), SIGUSR2 to write the images of its
+           next iteration.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
+from schemas.outcomes import Outcome
 from services.jobs.frames import array_bytes, read_frame, write_frame
 from services.jobs.isolation import apply_limits
 
@@ -51,6 +53,11 @@ class PipeReporter:
 
     def should_stop(self):
         return STOP[0] if STOP else None
+
+    def images_requested(self):
+        asked = bool(IMAGES)
+        IMAGES.clear()
+        return asked
 
 
 def _mitsuba_log_to_stderr() -> None:
@@ -129,6 +136,8 @@ def run(start: dict, out) -> None:
 #: The stop the parent asked for (set by the signal handlers, installed first thing in main:
 #: before that, SIGUSR1 would kill the child).
 STOP: list[str] = []
+#: Set by SIGUSR2: the parent relays a request for the next iteration's images.
+IMAGES: list[bool] = []
 
 
 def _ask(reason: str):
@@ -139,8 +148,9 @@ def _ask(reason: str):
 
 
 def main(argv: list[str]) -> int:
-    signal.signal(signal.SIGUSR1, _ask("canceled"))
-    signal.signal(signal.SIGTERM, _ask("interrupted"))
+    signal.signal(signal.SIGUSR1, _ask(Outcome.CANCELED))
+    signal.signal(signal.SIGTERM, _ask(Outcome.INTERRUPTED))
+    signal.signal(signal.SIGUSR2, lambda *_: IMAGES.append(True))
     mode, limits = argv[0], json.loads(argv[1])
     apply_limits(limits)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")

@@ -21,7 +21,7 @@ from schemas.job import JobSpec, SceneSpec, XmlScene
 from services.jobs.isolation import ChildFailed, ChildLimits, exchange
 from services.limits import check_limits, check_scene_report, check_target_headers
 from services.settings import Limits
-from services.uploads.sandbox import UploadLimits
+from services.uploads.scene import UploadLimits
 from services.uploads.staging import stage_scene
 
 log = logging.getLogger(__name__)

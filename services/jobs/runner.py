@@ -28,6 +28,7 @@ from pathlib import Path
 
 from schemas.errors import InvalidJob
 from schemas.job import JobSpec
+from schemas.outcomes import Outcome
 from schemas.records import IterationRecord, JobStatus
 from services.jobs.artifacts import BudgetExceeded, JobWriter
 from services.jobs.frames import FrameError, array_from, read_frame, write_frame
@@ -43,14 +44,16 @@ log = logging.getLogger(__name__)
 
 POLL_SECONDS = 0.5
 STOP_GRACE_SECONDS = 60.0
+#: How the parent asks its child to stop (``services.jobs.child`` installs the handlers).
+STOP_SIGNALS = {Outcome.CANCELED: signal.SIGUSR1, Outcome.INTERRUPTED: signal.SIGTERM}
 
 
 @dataclass
 class AttemptResult:
     """How an attempt ended, for the worker: ``succeeded``, ``failed``, ``canceled`` (the job is
-    finished), ``queued`` (handed back: interrupted), or ``fenced`` (another attempt owns it)."""
+    finished), ``interrupted`` (handed back to the queue), or ``fenced`` (another attempt owns it)."""
 
-    status: str
+    outcome: Outcome
     detail: str | None = None
 
 
@@ -59,19 +62,19 @@ class AttemptRunner:
         self.states, self.limits, self.scratch = states, limits, scratch
 
     def run(self, job_id: str, attempt: str, *, lost: threading.Event,
-            stop: Callable[[], str | None]) -> AttemptResult:
+            stop: Callable[[], Outcome | None]) -> AttemptResult:
         """Run the attempt ``attempt`` (already claimed in the record) to its end."""
         folder = self.scratch / f"{job_id}-{attempt.rsplit('#', 1)[-1]}"
         try:
             return self._run(job_id, attempt, folder, lost, stop)
         except Fenced as exc:
             log.warning("%s", exc)
-            return AttemptResult("fenced", str(exc))
+            return AttemptResult(Outcome.FENCED, str(exc))
         finally:
             shutil.rmtree(folder, ignore_errors=True)
 
     def _run(self, job_id: str, attempt: str, folder: Path, lost: threading.Event,
-             stop: Callable[[], str | None]) -> AttemptResult:
+             stop: Callable[[], Outcome | None]) -> AttemptResult:
         files = self.states.files(job_id)
         writer = JobWriter(self.states, job_id, attempt=attempt, byte_budget=self.limits.job_bytes)
         writer.guard()  # before staging anything: a stale attempt does nothing at all
@@ -105,18 +108,24 @@ class AttemptRunner:
             reader.join(5)
 
     def _supervise(self, job_id: str, child: Child, frames: queue.Queue, writer: JobWriter,
-                   lost: threading.Event, stop: Callable[[], str | None]) -> AttemptResult:
+                   lost: threading.Event, stop: Callable[[], Outcome | None]) -> AttemptResult:
         deadline = time.monotonic() + self.limits.job_seconds
-        signalled: str | None = None
+        signalled: Outcome | None = None
         stop_deadline = None
         ready = False  # the child signals once its handlers are installed: a signal before would kill it
+        images_signalled = False  # SIGUSR2 sent for the record's current images_requested
         while True:
             if lost.is_set():
                 raise Fenced(job_id, writer.attempt, "another worker (the lease was lost)")
+            if ready and writer.asked_for_images and not images_signalled:
+                child.signal(signal.SIGUSR2)  # the next iteration writes its images
+                images_signalled = True
+            elif not writer.asked_for_images:
+                images_signalled = False
             reason = stop()
             if reason and signalled is None and ready:
                 signalled, stop_deadline = reason, time.monotonic() + STOP_GRACE_SECONDS
-                child.signal(signal.SIGUSR1 if reason == "canceled" else signal.SIGTERM)
+                child.signal(STOP_SIGNALS[reason])
                 log.info("job %s: asked the run to stop (%s)", job_id, reason)
             if time.monotonic() > deadline:
                 child.kill()
@@ -124,8 +133,8 @@ class AttemptRunner:
                                           f"(NDRF_MAX_JOB_SECONDS)")
             if stop_deadline is not None and time.monotonic() > stop_deadline:
                 child.kill()  # it did not stop in time: the last checkpoint stands
-                return self._end(writer, {"status": "interrupted" if signalled == "interrupted" else "canceled",
-                                          "iterations": _next_iteration(writer.files), "seconds": 0.0})
+                return self._end(writer, {"status": _stopped(signalled), "iterations": _next_iteration(writer.files),
+                                          "seconds": 0.0})
             try:
                 item = frames.get(timeout=POLL_SECONDS)
             except queue.Empty:
@@ -139,10 +148,10 @@ class AttemptRunner:
                 if isinstance(item, EOFError) and signalled is not None:
                     # We asked it to stop and it died: our signal arrived before its handler was
                     # installed (the process was starting). Canceled is canceled; a shutdown hands back.
-                    return self._end(writer, {"status": "interrupted" if signalled == "interrupted" else "canceled",
+                    return self._end(writer, {"status": _stopped(signalled),
                                               "iterations": _next_iteration(writer.files), "seconds": 0.0})
                 if isinstance(item, EOFError):
-                    sent = {"canceled": signal.SIGUSR1, "interrupted": signal.SIGTERM}.get(signalled or "")
+                    sent = STOP_SIGNALS.get(signalled) if signalled else None
                     if sent is not None and child.proc.returncode == -sent:
                         # it died of our stop signal before its handler was installed (it had just
                         # started): it stopped as asked, and the last checkpoint stands
@@ -185,19 +194,19 @@ class AttemptRunner:
             raise FrameError(f"unknown report {kind!r}")
 
     def _end(self, writer: JobWriter, outcome: dict) -> AttemptResult:
-        if outcome.get("status") not in ("succeeded", "failed", "canceled", "interrupted"):
+        if outcome.get("status") not in set(Outcome) - {Outcome.FENCED}:
             raise FrameError(f"unknown outcome {outcome.get('status')!r}")
-        status = writer.finish(outcome)
-        return AttemptResult(status.value, outcome.get("error"))
+        writer.finish(outcome)
+        return AttemptResult(Outcome(outcome["status"]), outcome.get("error"))
 
     def _fail(self, writer: JobWriter, error: str, field: str | None = None) -> AttemptResult:
         log.warning("job %s failed: %s", writer.job_id, error)
         try:
-            writer.finish({"status": "failed", "iterations": _next_iteration(writer.files), "seconds": 0.0,
+            writer.finish({"status": Outcome.FAILED, "iterations": _next_iteration(writer.files), "seconds": 0.0,
                            "error": error, "field": field, "parameters": None})
         except (BudgetExceeded, StoreFull):  # the summary does not fit: the record still says why
             writer.states.transition(writer.job_id, JobStatus.FAILED, fence=writer.attempt, error=error, field=field)
-        return AttemptResult(JobStatus.FAILED.value, error)
+        return AttemptResult(Outcome.FAILED, error)
 
 
 def _pump(child: Child, frames: queue.Queue) -> None:
@@ -211,6 +220,11 @@ def _pump(child: Child, frames: queue.Queue) -> None:
             frames.put(frame)
     except (FrameError, OSError, ValueError) as exc:
         frames.put(exc)
+
+
+def _stopped(signalled: str | None) -> Outcome:
+    """How an attempt ends that was asked to stop and stopped (or died) before reporting."""
+    return Outcome.INTERRUPTED if signalled == Outcome.INTERRUPTED else Outcome.CANCELED
 
 
 def _next_iteration(files: JobFiles) -> int:

@@ -179,6 +179,17 @@ class JobService:
         except Conflict:  # running (or it just started): its runner stops it
             return self.states.transition(job_id, expect={JobStatus.RUNNING}, cancel_requested=True)
 
+    def request_images(self, job_id: str, caller: Caller = SYSTEM) -> JobRecord:
+        """Ask a running job to write the renders of every view and its gradient images at its
+        next iteration, whatever its images schedule (the dashboard's button). Only a running job
+        has a next iteration: anything else is a :class:`Conflict`."""
+        self.record(job_id, caller)
+        try:
+            return self.states.transition(job_id, expect={JobStatus.RUNNING}, images_requested=True)
+        except Conflict as exc:
+            raise Conflict(f"job {job_id} is not running: it has no next iteration to write images at",
+                           exc.record) from None
+
     def cancel_requested(self, job_id: str) -> bool:
         return self.states.get(job_id).cancel_requested
 

@@ -134,9 +134,10 @@ class JobStates:
         log.debug("job %s: %s -> %s %s", job_id, before.status.value, after.status.value, sorted(fields))
         return after
 
-    def event(self, job_id: str, event: dict) -> dict:
-        """Append an event to the job's log and publish it (the store's copy is what readers replay)."""
-        stored = self.store.append_event(self.files(job_id).prefix, event)
+    def event(self, job_id: str, event: dict, *, durable: bool = True) -> dict:
+        """Append an event to the job's log and publish it (the store's copy is what readers
+        replay); ``durable=False`` for per-iteration events (:meth:`ArtifactStore.put`)."""
+        stored = self.store.append_event(self.files(job_id).prefix, event, durable=durable)
         if self.events is not None:
             self.events.publish(job_id, stored)
         return stored

@@ -29,6 +29,7 @@ import logging
 import time
 import uuid
 from collections.abc import Iterable
+from typing import Any
 
 import redis
 import redis.asyncio
@@ -165,6 +166,22 @@ return 1
 """
 
 
+#: A stream entry as a client with ``decode_responses=True`` returns it: (id, fields).
+Entry = tuple[str, dict[str, str]]
+
+
+def _entries(raw: Any) -> list[Entry]:
+    """The entries of an XRANGE/XREVRANGE/XAUTOCLAIM list. redis-py types every reply as a union
+    of bytes, str and None whatever ``decode_responses`` says; the clients here decode, so ids and
+    fields are str (a deleted entry's fields are None: returned as an empty dict)."""
+    return [(str(entry_id), dict(fields or {})) for entry_id, fields in raw or []]
+
+
+def _read_entries(reply: Any) -> list[Entry]:
+    """The entries of the first stream in an XREAD/XREADGROUP reply (RESP2: ``[[stream, entries]]``)."""
+    return _entries(reply[0][1]) if reply else []
+
+
 def connect(url: str) -> redis.Redis:
     return redis.Redis.from_url(url, decode_responses=True, socket_timeout=30, socket_connect_timeout=5,
                                 health_check_interval=15)
@@ -216,7 +233,8 @@ class RedisJobQueue(JobQueue):
 
     def lease(self, consumer: str, block_seconds: float) -> Lease | None:
         def attempt():
-            _, claimed, *_ = self.redis.xautoclaim(STREAM, GROUP, consumer, self.lease_ms, "0-0", count=1)
+            reply: Any = self.redis.xautoclaim(STREAM, GROUP, consumer, self.lease_ms, "0-0", count=1)
+            claimed = _entries(reply[1])
             if claimed:
                 entry_id, fields = claimed[0]
                 if not fields:  # the entry was deleted meanwhile
@@ -225,11 +243,11 @@ class RedisJobQueue(JobQueue):
                 log.warning("took over job %s (entry %s) from a consumer that stopped renewing", fields["job"],
                             entry_id)
                 return Lease(fields["job"], entry_id, self._delivery(entry_id), consumer)
-            reply = self.redis.xreadgroup(GROUP, consumer, {STREAM: ">"}, count=1,
-                                          block=max(1, int(block_seconds * 1000)))
-            if not reply or not reply[0][1]:
+            read = _read_entries(self.redis.xreadgroup(GROUP, consumer, {STREAM: ">"}, count=1,
+                                                       block=max(1, int(block_seconds * 1000))))
+            if not read:
                 return None
-            entry_id, fields = reply[0][1][0]
+            entry_id, fields = read[0]
             return Lease(fields["job"], entry_id, self._delivery(entry_id), consumer)
 
         return self._retrying(attempt)
@@ -292,7 +310,7 @@ class RedisEventBus(EventBus):
     def wait(self, job_id: str, after_seq: int, timeout: float) -> bool:
         stream = EVENTS.format(job_id)
         try:
-            last = self.redis.xrevrange(stream, count=1)
+            last = _entries(self.redis.xrevrange(stream, count=1))
             if last and int(last[0][1]["seq"]) > after_seq:
                 return True
             reply = self.redis.xread({stream: last[0][0] if last else "0-0"}, count=1,
@@ -315,7 +333,7 @@ class RedisEventBus(EventBus):
         stream = EVENTS.format(job_id)
         client = self.async_client()
         try:
-            last = await asyncio.wait_for(client.xrevrange(stream, count=1), 10)
+            last = _entries(await asyncio.wait_for(client.xrevrange(stream, count=1), 10))
             if last and int(last[0][1]["seq"]) > after_seq:
                 return True
             reply = await asyncio.wait_for(client.xread({stream: last[0][0] if last else "0-0"}, count=1,

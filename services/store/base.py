@@ -37,8 +37,9 @@ class ArtifactStore(ABC):
         """The object's bytes, or None if it does not exist."""
 
     @abstractmethod
-    def put(self, key: str, data: bytes) -> None:
-        """Write the whole object atomically."""
+    def put(self, key: str, data: bytes, *, durable: bool = True) -> None:
+        """Write the whole object atomically. ``durable=False``: it need not survive a power loss
+        until the next :meth:`flush` (a job's per-iteration files, made durable at checkpoints)."""
 
     @abstractmethod
     def get_versioned(self, key: str) -> tuple[bytes, str] | None:
@@ -99,9 +100,14 @@ class ArtifactStore(ABC):
     # ------------------------------------------------------------------- events
 
     @abstractmethod
-    def append_event(self, prefix: str, event: dict) -> dict:
+    def append_event(self, prefix: str, event: dict, *, durable: bool = True) -> dict:
         """Append ``event`` to the log of ``prefix`` with the next sequence number (``seq``) and
-        the time (``time``) added; returns the stored event. Safe against concurrent appenders."""
+        the time (``time``) added; returns the stored event. Safe against concurrent appenders.
+        ``durable=False``: as for :meth:`put`."""
+
+    def flush(self) -> None:  # noqa: B027 (a hook with a default, not an abstract method)
+        """Make every write done with ``durable=False`` so far durable (no-op where every write
+        already is, as in S3)."""
 
     @abstractmethod
     def read_events(self, prefix: str, after: int = 0, cursor: Any = None) -> tuple[list[dict], Any]:

@@ -1,7 +1,11 @@
 """The folder store: the embedded default (``NDRF_STORE=./runs``), and what several processes of
 one machine (or a compose file's shared volume) share.
 
-* ``put``: temporary file in the same folder, fsync, ``os.replace`` (atomic on POSIX);
+* ``put``: temporary file in the same folder, fsync, ``os.replace`` (atomic on POSIX); with
+  ``durable=False`` the fsync is left to :meth:`FolderStore.flush` (a job's per-iteration record
+  and event: the writer flushes before every checkpoint, so what a resume relies on is durable,
+  and an iteration costs no fsync; a process crash loses nothing, only a power loss could lose
+  the iterations after the last checkpoint, which a resume recomputes anyway);
 * ``put_if``: an exclusive ``flock`` on a lock file beside the object, then compare the content
   hash (the version, like an S3 ETag) and ``put``. flock is per machine: across machines use the
   S3 store (NFS rename and lock semantics differ);
@@ -47,6 +51,7 @@ class FolderStore(ArtifactStore):
         self.root.mkdir(parents=True, exist_ok=True)
         self._usage: tuple[float, int] | None = None
         self._usage_ttl = usage_ttl
+        self._unflushed: set[Path] = set()
 
     def __repr__(self) -> str:
         return f"FolderStore({str(self.root)!r})"
@@ -65,11 +70,30 @@ class FolderStore(ArtifactStore):
         except (FileNotFoundError, NotADirectoryError, IsADirectoryError):
             return None
 
-    def put(self, key: str, data: bytes) -> None:
+    def put(self, key: str, data: bytes, *, durable: bool = True) -> None:
         try:
-            atomic_write_bytes(self.path(key), data)
+            path = atomic_write_bytes(self.path(key), data, sync=durable)
         except OSError as exc:
             raise _translated(exc, key) from exc
+        if not durable:
+            self._unflushed.add(path)
+
+    def flush(self) -> None:
+        pending, self._unflushed = self._unflushed, set()
+        for path in sorted(pending):
+            with contextlib.suppress(FileNotFoundError):   # deleted meanwhile
+                fd = os.open(path, os.O_RDONLY)
+                try:
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+        for folder in sorted({p.parent for p in pending}):   # the renames themselves
+            with contextlib.suppress(FileNotFoundError):
+                fd = os.open(folder, os.O_RDONLY)
+                try:
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
 
     def get_versioned(self, key: str) -> tuple[bytes, str] | None:
         data = self.get(key)
@@ -145,7 +169,7 @@ class FolderStore(ArtifactStore):
 
     # ------------------------------------------------------------------- events
 
-    def append_event(self, prefix: str, event: dict) -> dict:
+    def append_event(self, prefix: str, event: dict, *, durable: bool = True) -> dict:
         path = self.path(prefix + EVENTS)
         path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o644)
@@ -155,7 +179,10 @@ class FolderStore(ArtifactStore):
             line = (dumps(stored, indent=None) + "\n").encode()
             if os.write(fd, line) != len(line):
                 raise StoreFull(errno.ENOSPC, "short write to the event log", str(path))
-            os.fsync(fd)
+            if durable:
+                os.fsync(fd)
+            else:
+                self._unflushed.add(path)
         except OSError as exc:
             raise _translated(exc, prefix + EVENTS) from exc
         finally:

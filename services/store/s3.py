@@ -132,8 +132,8 @@ class S3Store(ArtifactStore):
         except _MISSING:
             return None
 
-    def put(self, key: str, data: bytes) -> None:
-        self._put(key, data, None)
+    def put(self, key: str, data: bytes, *, durable: bool = True) -> None:
+        self._put(key, data, None)   # a PUT that succeeded is durable
 
     def _put(self, key: str, data: bytes, mode: Any) -> str | None:
         ext = key.rsplit(".", 1)[-1]
@@ -252,7 +252,7 @@ class S3Store(ArtifactStore):
 
     # ------------------------------------------------------------------- events
 
-    def append_event(self, prefix: str, event: dict) -> dict:
+    def append_event(self, prefix: str, event: dict, *, durable: bool = True) -> dict:
         with self._seq_lock:
             known = self._last_seq.get(prefix)
         seq = (self._last_listed_seq(prefix, 0) if known is None else known) + 1

@@ -60,7 +60,7 @@ _CHUNK = 1 << 20  # bytes inflated or parsed at a time
 
 @dataclass(frozen=True)
 class MeshLimits:
-    """The caps this module applies; :class:`services.uploads.sandbox.UploadLimits` has the same
+    """The caps this module applies; :class:`services.uploads.scene.UploadLimits` has the same
     fields and can be passed instead."""
 
     max_mesh_vertices: int = 10_000_000

@@ -1,4 +1,4 @@
-"""Staging of an uploaded scene: check it (:mod:`services.uploads.sandbox`), then write the XML
+"""Staging of an uploaded scene: check it (:mod:`services.uploads.scene`), then write the XML
 and its files into an emptied folder, where a sandboxed child loads it.
 
 The folder is emptied first so that nothing left there can shadow an upload, and created even
@@ -11,7 +11,7 @@ import shutil
 from pathlib import Path
 
 from schemas.job import BuiltinScene, PathScene, SceneSpec, XmlScene
-from services.uploads.sandbox import MAIN_XML_NAME, UploadLimits, check_scene_upload
+from services.uploads.scene import MAIN_XML_NAME, UploadLimits, check_scene_upload
 
 
 def write_scene_files(folder: Path, xml: str, files: dict[str, bytes]) -> Path:

@@ -25,13 +25,13 @@ import logging
 from dataclasses import dataclass
 
 import drjit as dr
-import mitsuba as mi
 import numpy as np
 import torch
 
 from services.solver.estimators.problem import Problem
 from services.solver.fields.field import NeuralField, evaluate
 from services.solver.fields.query import FieldQuery
+from services.solver.jit_types import Bool, Color
 from services.solver.sampling.camera import CameraSamples, develop, sample_camera
 from services.solver.sampling.surface import queryable
 from services.solver.sampling.tensors import field_query, mask, rgb
@@ -54,7 +54,7 @@ class CachedView:
     height: int
     spp: int
     samples: CameraSamples
-    on_emitter: mi.Bool
+    on_emitter: Bool
     scale: torch.Tensor
     surface: torch.Tensor
     query: FieldQuery
@@ -83,7 +83,7 @@ class FirstHitCache:
             emitter = chain.si.emitter(scene, chain.active)
             on_emitter = chain.active & (emitter != None)
             on_surface = chain.active & queryable(chain.si, scene)
-            scale = samples.weight * chain.beta
+            scale: Color = samples.weight * chain.beta
             dr.eval(on_emitter, on_surface, scale)
         surface, query = field_query(chain.si).compact(mask(on_surface))
         for field in fields:
@@ -100,7 +100,7 @@ class FirstHitCache:
         current parameters (memoised until they change)."""
         problem = self.problem
         values = problem.parameters.values()
-        if view.emission is not None and np.array_equal(values, view.emission_at):
+        if view.emission is not None and view.emission_at is not None and np.array_equal(values, view.emission_at):
             return view.emission
         si, where = view.samples.chain.si, view.on_emitter
         scene, params = problem.scene.scene, problem.parameters

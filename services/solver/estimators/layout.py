@@ -26,6 +26,14 @@ class DerivativeLayout:
     def full(cls, n: int) -> DerivativeLayout:
         return cls(tuple(range(n)), tuple((0, 1, 2) for _ in range(n)))
 
+    @classmethod
+    def by_component(cls, sizes: list[int]) -> DerivativeLayout:
+        """Every scalar active; component ``c`` of a three-component (RGB) parameter carries channel
+        ``c`` alone (RGB transport never mixes channels), any other scalar all three. What the
+        effect planner's probe would measure for an RGB value, known without probing (``prb``)."""
+        channels = [((c,) if size == 3 else (0, 1, 2)) for size in sizes for c in range(size)]
+        return cls(tuple(range(len(channels))), tuple(channels))
+
     @property
     def active(self) -> int:
         return len(self.scalars)

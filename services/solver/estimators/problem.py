@@ -28,15 +28,14 @@ class Problem:
     scene: LoadedScene
     parameters: ParameterSet
     delta_depth: int = 8
-    layout: DerivativeLayout | None = None
+    layout: DerivativeLayout = field(init=False)  # every scalar, an RGB component its own channel, until apply_plan
     attach_bsdf: bool = True
     attach_emission: bool = True
     plan: EffectPlan | None = None
     sanitized: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self):
-        if self.layout is None:
-            self.layout = DerivativeLayout.full(self.parameters.n)
+        self.layout = DerivativeLayout.by_component([info.size for info in self.parameters.infos])
 
     def apply_plan(self, plan: EffectPlan) -> None:
         """Simulate only what ``plan`` calls for."""

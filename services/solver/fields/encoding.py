@@ -18,6 +18,9 @@ _PRIME_Z = 805459861
 
 
 class HashGridEncoding(nn.Module):
+    resolution: torch.Tensor  # buffers, declared for the type checker (nn.Module types attributes loosely)
+    stride: torch.Tensor
+    offset: torch.Tensor
     """Multiresolution hash grid: ``(B, 3)`` positions in ``[0, 1]^3`` -> ``(B, L·F)`` features.
 
     Level ``l`` has resolution ``floor(base · scale^l)``; a level whose ``(res + 1)^3`` vertices

@@ -24,6 +24,9 @@ from services.solver.fields.query import FieldQuery
 
 
 class NeuralField(nn.Module):
+    center: torch.Tensor  # buffers, declared for the type checker (nn.Module types attributes loosely)
+    inv_extent: torch.Tensor
+    output_scale: torch.Tensor
     """Query ``(K, 3)`` positions, directions and normals -> ``(K, channels)``."""
 
     def __init__(self, config: FieldConfig, channels: int, box_min, box_max):

@@ -1,10 +1,12 @@
 """Checkpoints: everything a run needs to continue exactly where it stopped, as bytes (the host
 stores them; the solver never touches the store).
 
-A checkpoint holds the index of the next iteration, the parameter vector and its Adam state, both
-fields and their optimizers (via ``FieldTrainer.state_dict``, which includes the training-step
-counter that every sample seed derives from), torch's RNG state, the gradient method that ran (an
-``auto`` job's pick), and a fingerprint of the job so
+A checkpoint holds the index of the next iteration, the parameter vector and its optimizer's state
+(Adam's moments, Levenberg-Marquardt's trust radius), the position in the stream of views and the
+batch (views, spp, gradient spp), the curvature in use and each view's last two Jacobians
+(block-averaged), both fields and their optimizers (via
+``FieldTrainer.state_dict``, which includes the training-step counter that every sample seed
+derives from), torch's RNG state, the gradient method that ran, and a fingerprint of the job so
 that a checkpoint is never loaded into a different job. It is read with ``weights_only=True``:
 tensors and plain data only, so a checkpoint from the store cannot run code.
 """
@@ -19,14 +21,21 @@ import torch
 from schemas.job import JobSpec
 
 
-def dumps(*, spec: JobSpec, next_iteration: int, parameters: np.ndarray, adam: dict, trainer: dict | None,
-          attempt: str | None = None, method: str | None = None) -> bytes:
+def dumps(*, spec: JobSpec, next_iteration: int, parameters: np.ndarray, optimizer: dict, trainer: dict | None,
+          views_offset: int = 0, batch: tuple[int, int, int] = (1, 1, 1), hessian: np.ndarray | None = None,
+          jacobians: dict[int, list[tuple[np.ndarray, np.ndarray]]] | None = None, attempt: str | None = None,
+          method: str | None = None) -> bytes:
     state = {
         "fingerprint": spec.fingerprint(),
         "method": method,
         "next_iteration": next_iteration,
         "parameters": np.asarray(parameters, np.float64).tolist(),
-        "adam": adam,
+        "optimizer": optimizer,
+        "views_offset": int(views_offset),
+        "batch": [int(v) for v in batch],  # views per iteration, spp, gradient spp
+        "hessian": None if hessian is None else np.asarray(hessian, np.float64).tolist(),
+        "jacobians": {str(s): [(torch.from_numpy(np.asarray(at, np.float64)), torch.from_numpy(np.asarray(j, np.float64)))
+                               for at, j in pairs] for s, pairs in (jacobians or {}).items()},
         "trainer": trainer,
         "torch_rng": torch.get_rng_state(),
         "attempt": attempt,

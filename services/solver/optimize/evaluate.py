@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 
 from schemas.job import JobSpec
+from services.solver.estimators.losses import image_loss
 from services.solver.estimators.methods import contract, make_method
 from services.solver.estimators.render import render
-from services.solver.estimators.training import fields_of, trainer_for
-from services.solver.optimize.losses import image_loss
 from services.solver.optimize.setup import prepare
 from services.solver.seeds import derive_seed
+from services.solver.training.trainer import fields_of, trainer_for
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +33,7 @@ def evaluate_gradient(spec: JobSpec, method_name: str, *, spp: int | None = None
                       scene_file: Path | None = None) -> GradientEvaluation:
     prepared = prepare(spec, scene_file=scene_file, method=method_name)
     problem = prepared.problem
-    method = make_method(method_name, problem.plan, prepared.depths["render"])
+    method = make_method(method_name, problem.plan, prepared.depth)
     spp = spp or spec.render.gradient_spp
     steps = spec.training.warmup_steps if train_steps is None else train_steps
 
@@ -47,7 +47,7 @@ def evaluate_gradient(spec: JobSpec, method_name: str, *, spp: int | None = None
         images[sensor] = method.images(problem, fields_of(trainer), spp=spp,
                                        seed=derive_seed(spec.seed, "gradient", sensor), sensor=sensor)
         candidate = render(problem, spp=spec.render.spp, seed=derive_seed(spec.seed, "candidate", sensor),
-                           sensor=sensor, max_depth=prepared.depths["render"])
+                           sensor=sensor, depth=prepared.depth)
         z, dz_dy = image_loss(spec.loss, candidate, target)
         loss += z
         dz_dp += contract(images[sensor], dz_dy)

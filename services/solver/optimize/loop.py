@@ -1,11 +1,18 @@
 """The inverse-rendering loop (paper Sec. 5, Fig. 3b), one iteration at a time:
 
     1. train / fine-tune L_phi and dL_theta for the current parameters      (Eq. 5-9, Sec. 6.1)
-    2. render the candidate y and its loss z(y) against the target(s)        (summed over sensors)
+    2. render the candidate y of each view of the iteration's batch and     (a mini-batch of views,
+       its loss z(y) against the target                                      scaled to the sum)
     3. dz/dy
     4.-5. dz/dp = dz/dy · dy/dp with the job's gradient method                (Eq. 3, 10, 11 / Sec. 6.3)
-       (``GradientMethod.candidate_and_gradient``: ``prb`` does 2-5 in one differentiable render)
-    6. Adam step on p, projected onto the bounds
+       (``GradientMethod.candidate_and_gradient``: ``prb`` does 2-5 in one differentiable render),
+       and for a second-order step the Jacobian J = dy/dp of the same views
+    6. a step of the optimizer (Adam, Gauss-Newton, Levenberg-Marquardt), projected onto the bounds
+
+What runs is the :class:`~services.solver.optimize.recipe.Recipe` (the job's choices, or the
+product's for ``auto``), and the run itself may change it (a larger batch of views or samples
+when the steps turn noise-dominated); every decision is in the plan. Renders of every view and gradient images are
+written on a budget (``images_every`` / ``images_budget``) and when the host asks for them.
 
 The loop computes and reports (:class:`~services.solver.optimize.report.RunReporter`); it never
 writes a file or a job record. The CLI, the worker and the tests differ only in their reporter.
@@ -22,41 +29,55 @@ import numpy as np
 
 from schemas.errors import InvalidJob
 from schemas.job import JobSpec
-from schemas.methods import AUTO, AUTO_CANDIDATES
+from schemas.outcomes import Outcome
 from schemas.records import IterationRecord
+from services.solver.estimators.losses import ImageLoss
 from services.solver.estimators.methods import GradientMethod
-from services.solver.estimators.training import FieldTrainer, fields_of
 from services.solver.optimize import checkpoint
-from services.solver.optimize.adam import Adam
-from services.solver.optimize.auto import choose_method
-from services.solver.optimize.build import build
-from services.solver.optimize.gauss_newton import gauss_newton_hessian, gauss_newton_step
-from services.solver.optimize.losses import image_loss
-from services.solver.optimize.report import RunAborted, RunOutcome, RunReporter
+from services.solver.optimize.build import Built, build
+from services.solver.optimize.images import ImageSchedule, render_views
+from services.solver.optimize.optimizers import ParameterOptimizer, make_optimizer
+from services.solver.optimize.optimizers.gauss_newton import BLOCK, hessian_of, jacobian_matrix
+from services.solver.optimize.recipe import Recipe, choose_recipe, grow_batch
+from services.solver.optimize.report import RunAborted, RunOutcome, RunReporter, StopReason
 from services.solver.optimize.setup import Prepared, prepare
+from services.solver.optimize.views import ViewStream
 from services.solver.seeds import derive_seed
+from services.solver.training.trainer import FieldTrainer, fields_of
 
 log = logging.getLogger(__name__)
 
 #: Seconds between two warm-up progress reports.
 PROGRESS_SECONDS = 2.0
+#: A remembered Jacobian counts for the curvature while the parameters are within this many
+#: learning rates of where it was taken (:meth:`InverseRenderingRun._curvature`).
+FRESH = 2.0
 
 
 class Stopped(Exception):
-    """The host asked the run to stop: ``"canceled"`` (the job ends) or ``"interrupted"`` (the
-    run checkpoints and the host resumes it later)."""
+    """The host asked the run to stop: ``canceled`` (the job ends) or ``interrupted`` (the run
+    checkpoints and the host resumes it later)."""
 
-    def __init__(self, reason: str):
+    def __init__(self, reason: StopReason):
         super().__init__(reason)
         self.reason = reason
 
 
 @dataclass
 class RunState:
+    """What a resumed run restores: the next iteration, the parameters, the optimizer's state,
+    the position in the stream of views, the batch size, the curvature in use and each view's
+    last Jacobian (the ``successive`` curvature's partner)."""
+
     next_iteration: int
     parameters: np.ndarray
-    adam: Adam
-    history: list = field(default_factory=list)
+    optimizer: ParameterOptimizer
+    views_offset: int = 0
+    hessian: np.ndarray | None = None
+    #: each view's last two (block-averaged) Jacobians, with the parameters they were taken at
+    jacobians: dict[int, list[tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict)
+    images: ImageSchedule = field(default_factory=ImageSchedule)
+    losses: dict[int, ImageLoss] = field(default_factory=dict)   # each view's loss (its target on the device)
 
 
 def learning_rate(spec: JobSpec, k: int) -> float:
@@ -86,7 +107,7 @@ class InverseRenderingRun:
         self.reporter = reporter
         self.scene_file = scene_file
         self.resume = resume
-        self.method_name = str(spec.method)  # the method that runs: an auto job's pick once execute() chose
+        self.method_name = str(spec.method)  # the method that runs: an auto job's choice once execute() made it
 
     def execute(self) -> RunOutcome:
         """Run to the end, to a cancel or to an interruption. A job that fails returns a failed
@@ -95,64 +116,63 @@ class InverseRenderingRun:
         state = trainer = None
         try:
             prepared = prepare(self.spec, scene_file=self.scene_file)
-            self.method_name, choice = self._method_name(prepared)
-            method, trainer = build(prepared, self.method_name)
-            self.reporter.plan(self._plan(prepared, method, trainer, choice))
-            state = self._initial_state(prepared, trainer)
+            recipe = choose_recipe(self.spec, prepared.problem, len(prepared.targets))
+            self.method_name = recipe.method
+            built = build(prepared, recipe.method, recipe.jacobian)
+            trainer = built.trainer
+            state = self._initial_state(prepared, recipe, trainer)
+            self.reporter.plan(self._plan(prepared, built, recipe))
             self.reporter.targets(prepared.targets)
+            stream = ViewStream(sorted(prepared.targets), derive_seed(self.spec.seed, "batches"))
             for k in range(state.next_iteration, self.spec.iterations):
                 self._stop_if_asked()
-                self._iteration(k, prepared, method, trainer, state)
+                grown = self._iteration(k, prepared, built, recipe, stream, state)
                 state.next_iteration = k + 1
+                if grown:
+                    self.reporter.plan(self._plan(prepared, built, recipe))
                 if state.next_iteration % self.spec.checkpoint_every == 0 or state.next_iteration == self.spec.iterations:
-                    self._checkpoint(state, trainer)
-            return self._outcome("succeeded", state, started)
+                    self._checkpoint(state, recipe, trainer)
+            return self._outcome(Outcome.SUCCEEDED, state, started)
         except RunAborted:
             raise
         except Stopped as stop:
             log.info("run %s at iteration %s", stop.reason, state.next_iteration if state else 0)
-            if stop.reason == "interrupted":
+            if stop.reason == Outcome.INTERRUPTED:
                 if state is not None:
-                    self._checkpoint(state, trainer)
-                return self._outcome("interrupted", state, started)
-            return self._outcome("canceled", state, started)
+                    self._checkpoint(state, recipe, trainer)
+                return self._outcome(Outcome.INTERRUPTED, state, started)
+            return self._outcome(Outcome.CANCELED, state, started)
         except InvalidJob as exc:
-            return self._outcome("failed", state, started, error=str(exc), field=exc.field)
+            return self._outcome(Outcome.FAILED, state, started, error=str(exc), field=exc.field)
         except FloatingPointError as exc:
             k = state.next_iteration if state else 0
-            return self._outcome("failed", state, started, error=f"iteration {k}: {exc}")
+            return self._outcome(Outcome.FAILED, state, started, error=f"iteration {k}: {exc}")
         except Exception as exc:  # recorded, never silent; the host decides what else to do
             log.exception("run failed")
-            return self._outcome("failed", state, started, error=f"{type(exc).__name__}: {exc}")
+            return self._outcome(Outcome.FAILED, state, started, error=f"{type(exc).__name__}: {exc}")
 
     # -------------------------------------------------------------- phases
-
-    def _method_name(self, prepared: Prepared) -> tuple[str, dict | None]:
-        """The job's method; for ``auto``, the trial's pick (``services.solver.optimize.auto``), or
-        on resume the pick the checkpoint recorded (timings differ between attempts; the method
-        must not)."""
-        if self.spec.method != AUTO:
-            return str(self.spec.method), None
-        saved = checkpoint.method_of(self.resume) if self.resume is not None else None
-        if saved is not None:
-            return saved, {"picked": saved, "reason": "picked by an earlier attempt of this job (its checkpoint)"}
-        self.reporter.progress("auto", {"candidates": [str(m) for m in AUTO_CANDIDATES]})
-        choice = choose_method(prepared, between=self._stop_if_asked)
-        return choice.method, choice.to_json()
 
     def _stop_if_asked(self) -> None:
         reason = self.reporter.should_stop()
         if reason:
             raise Stopped(reason)
 
-    def _initial_state(self, prepared: Prepared, trainer: FieldTrainer | None) -> RunState:
-        adam = Adam(prepared.problem.parameters.n, self.spec.learning_rate, *self.spec.adam_betas)
-        state = RunState(0, prepared.init.copy(), adam)
+    def _initial_state(self, prepared: Prepared, recipe: Recipe, trainer: FieldTrainer | None) -> RunState:
+        spec = self.spec
+        optimizer = make_optimizer(recipe.optimizer, prepared.problem.parameters.n, lr=spec.learning_rate,
+                                   betas=spec.adam_betas, damping=spec.damping)
+        state = RunState(0, prepared.init.copy(), optimizer)
         if self.resume is not None:
-            saved = checkpoint.loads(self.resume, self.spec)
+            saved = checkpoint.loads(self.resume, spec)
             state.next_iteration = saved["next_iteration"]
             state.parameters = np.asarray(saved["parameters"], np.float64)
-            adam.load_state_dict(saved["adam"])
+            optimizer.load_state_dict(saved["optimizer"])
+            state.views_offset = int(saved["views_offset"])
+            recipe.views, recipe.spp, recipe.gradient_spp = (int(v) for v in saved["batch"])
+            state.hessian = None if saved["hessian"] is None else np.asarray(saved["hessian"], np.float64)
+            state.jacobians = {int(s): [(np.asarray(at, np.float64), np.asarray(j, np.float64)) for at, j in pairs]
+                               for s, pairs in saved["jacobians"].items()}
             if trainer is not None and saved["trainer"] is not None:
                 trainer.load_state_dict(saved["trainer"])
             self.reporter.progress("resumed", {"iteration": state.next_iteration,
@@ -175,91 +195,135 @@ class InverseRenderingRun:
             if warmup and time.monotonic() - last >= PROGRESS_SECONDS:
                 last = time.monotonic()
                 self.reporter.progress("warmup", {"steps": trainer.steps, "planned": planned,
-                                                  "residual_primal": stats.primal_loss,
+                                                  "residual_radiance": stats.radiance_loss,
                                                   "residual_differential": stats.differential_loss})
 
         # fixed: up to the planned count (a resumed run trains what the uninterrupted one would have);
         # adaptive: until the residual norms say the fields have caught up (training.adaptive_steps)
         stats = trainer.train_iteration(on_step) if adaptive else trainer.train(steps, on_step)
-        steps = len(stats)
         trainer.check_finite()
-        primal = [s.primal_loss for s in stats if s.primal_loss is not None and np.isfinite(s.primal_loss)]
+        radiance = [s.radiance_loss for s in stats if s.radiance_loss is not None and np.isfinite(s.radiance_loss)]
         differential = [s.differential_loss for s in stats
                         if s.differential_loss is not None and np.isfinite(s.differential_loss)]
-        return {"training_steps": steps, "residual_primal": float(np.mean(primal)) if primal else None,
+        return {"training_steps": len(stats), "residual_radiance": float(np.mean(radiance)) if radiance else None,
                 "residual_differential": float(np.mean(differential)) if differential else None}
 
-    def _iteration(self, k: int, prepared: Prepared, method: GradientMethod, trainer: FieldTrainer | None,
-                   state: RunState) -> None:
-        spec, problem = self.spec, prepared.problem
-        write_images = k % spec.images_every == 0 or k == spec.iterations - 1
+    def _iteration(self, k: int, prepared: Prepared, built: Built, recipe: Recipe, stream: ViewStream,
+                   state: RunState) -> bool:
+        """One iteration; returns whether the recipe changed (the plan is then re-reported)."""
+        spec, problem, method = self.spec, prepared.problem, built.method
         t0 = time.perf_counter()
-        training = self._train(trainer, k)
+        training = self._train(built.trainer, k)
         t1 = time.perf_counter()
-        fields = fields_of(trainer)
-        loss, dz_dp, renders, gradients = 0.0, np.zeros(problem.parameters.n), {}, {}
-        newton = spec.optimizer == "gauss-newton"
-        hessian = np.zeros((problem.parameters.n, problem.parameters.n))
-        gradient_seconds = image_seconds = 0.0
-        for sensor, target in sorted(prepared.targets.items()):
-            r0 = time.perf_counter()
+        fields = fields_of(built.trainer)
+        batch = stream.batch(state.views_offset, recipe.views)
+        curvature = state.optimizer.needs_curvature and (state.hessian is None or k % spec.jacobian_every == 0)
+        # The successive curvature draws on every view's remembered Jacobians: one new one per
+        # iteration keeps the memory fresh (the batch's first view, rotating with the stream)
+        measured = set(batch.sensors[:1] if spec.hessian == "successive" else batch.sensors) if curvature else set()
+        n = problem.parameters.n
+        loss, dz_dp, candidates, jacobians, seeds = 0.0, np.zeros(n), {}, {}, {}
+        for sensor in batch.sensors:
             seed = derive_seed(spec.seed, "iteration", k, sensor)
+            loss_of = state.losses.setdefault(sensor, ImageLoss(spec.loss, prepared.targets[sensor],
+                                                                problem.count_sanitized))
 
-            def loss_of(candidate: np.ndarray, target=target) -> tuple[float, np.ndarray]:
-                return image_loss(spec.loss, _finite(problem, "candidate pixels (non-finite)", candidate), target)
-
-            candidate, z, dz_dp_sensor = method.candidate_and_gradient(
-                problem, fields, loss_of, spp=spec.render.spp, gradient_spp=spec.render.gradient_spp, seed=seed,
-                sensor=sensor, max_depth=prepared.depths["render"])
-            dz_dp += dz_dp_sensor
-            loss += z
-            r1 = time.perf_counter()
-            if newton and spec.hessian == "cross":  # two independent halves: an unbiased JᵀJ
-                halves = [_finite(problem, "gradient pixels (non-finite)",
-                                  method.images(problem, fields, spp=max(1, spec.render.gradient_spp // 2),
-                                                seed=derive_seed(seed, "gradient", half), sensor=sensor))
-                          for half in ("a", "b")]
-                hessian += gauss_newton_hessian(*halves)
-                images = (halves[0] + halves[1]) / 2
-            elif write_images or newton:  # the samples loss_gradient used (camera-hit methods): images match dz/dp
-                images = _finite(problem, "gradient pixels (non-finite)",
-                                 method.images(problem, fields, spp=spec.render.gradient_spp,
-                                               seed=derive_seed(seed, "gradient"), sensor=sensor))
-                if newton:
-                    hessian += gauss_newton_hessian(images)
-            if write_images:
-                renders[sensor] = np.nan_to_num(candidate, nan=0.0, posinf=0.0, neginf=0.0)  # counted in loss_of
-                gradients[sensor] = images
-            image_seconds += time.perf_counter() - r1
-            gradient_seconds += r1 - r0
+            if sensor in measured and built.jacobian is None:
+                candidate, z, g, jacobians[sensor] = method.candidate_gradient_and_images(
+                    problem, fields, loss_of, spp=recipe.spp, gradient_spp=recipe.gradient_spp, seed=seed,
+                    depth=prepared.depth, sensor=sensor)
+            else:
+                candidate, z, g = method.candidate_and_gradient(
+                    problem, fields, loss_of, spp=recipe.spp, gradient_spp=recipe.gradient_spp, seed=seed,
+                    depth=prepared.depth, sensor=sensor)
+                if sensor in measured:
+                    assert built.jacobian is not None
+                    jacobians[sensor] = built.jacobian.images(problem, fields, spp=recipe.gradient_spp,
+                                                              seed=derive_seed(seed, "jacobian"), sensor=sensor)
+            seeds[sensor] = seed
+            dz_dp += batch.scale * g
+            loss += batch.scale * z
+            candidates[sensor] = candidate
+        t2 = time.perf_counter()
+        if curvature:
+            source = method if built.jacobian is None else built.jacobian
+            state.hessian = self._curvature(problem, source, fields, jacobians, seeds, recipe, state,
+                                            len(prepared.targets), learning_rate(spec, k))
         lr = learning_rate(spec, k)
-        if newton:
-            updated = gauss_newton_step(state.parameters, dz_dp, hessian, prepared.lower, prepared.upper, lr=lr,
-                                        damping=spec.damping)
-        else:
-            updated = state.adam.step(state.parameters, dz_dp, prepared.lower, prepared.upper, lr=lr)
+        updated = state.optimizer.step(state.parameters, dz_dp, prepared.lower, prepared.upper, lr=lr,
+                                       hessian=state.hessian)
+        state.views_offset = batch.offset
         problem.parameters.assign(updated)
+        decision = grow_batch(recipe, len(prepared.targets), k) if state.optimizer.noise_dominated() else None
+        write = state.images.due(k, spec, asked=self.reporter.images_requested(), elapsed=time.perf_counter() - t0)
+        renders = gradients = None
+        t3 = time.perf_counter()
+        if write:  # at the parameters the record's step was taken at (the images show what it saw)
+            problem.parameters.assign(state.parameters)
+            renders, gradients = render_views(prepared, method, fields, candidates, k, recipe.spp, recipe.gradient_spp)
+            problem.parameters.assign(updated)
+        t4 = time.perf_counter()
+        state.images.spent(t4 - t3, t4 - t0, written=write)
         record = IterationRecord(
             iteration=k, loss=loss, parameters=state.parameters.tolist(), updated_parameters=updated.tolist(),
-            dz_dp=dz_dp.tolist(), learning_rate=lr, images=write_images, sanitized=dict(problem.sanitized),
-            seconds={"training": t1 - t0, "gradient": gradient_seconds, "images": image_seconds},
+            dz_dp=dz_dp.tolist(), learning_rate=lr, images=write, sanitized=dict(problem.sanitized),
+            views=batch.sensors, optimizer=state.optimizer.describe() or None,
+            seconds={"training": t1 - t0, "gradient": t2 - t1, "step": t3 - t2, "images": t4 - t3},
             parameter_error=(float(np.max(np.abs(state.parameters - prepared.target_values)))
                              if prepared.target_values is not None else None),
             **training)
         state.parameters = updated
-        state.history.append(record)
-        self.reporter.iteration(record, renders or None, gradients or None)
+        self.reporter.iteration(record, renders, gradients)
+        return decision is not None
+
+    def _curvature(self, problem, source: GradientMethod, fields, jacobians: dict[int, np.ndarray], seeds: dict,
+                   recipe: Recipe, state: RunState, sensors: int, lr: float) -> np.ndarray:
+        """The Gauss-Newton curvature ``H`` of the loss summed over every view, from the Jacobians
+        ``jacobians`` of this iteration's views (``hessian``):
+
+        ``successive``  each view's two most recent Jacobians *before* this iteration, cross-
+                        multiplied (:func:`hessian_of`), summed over the views that have any and
+                        scaled to all ``sensors``: independent of this iteration's gradient (which
+                        the Jacobian's noise would otherwise correlate with the curvature, biasing
+                        the fixed point of ``H⁻¹ g``) and of each other's noise. Only Jacobians
+                        taken within :data:`FRESH` learning rates of the current parameters count:
+                        while the parameters travel (far from the answer, where the signal beats
+                        the noise) the curvature comes from this iteration's own Jacobians.
+        ``product``     ``(2/n) JᵀJ`` of this iteration's views, scaled to all views
+        ``cross``       this iteration's against a second estimate drawn now
+        """
+        block = BLOCK if recipe.jacobian == "method" and recipe.method == "prb" else 1
+        current = {s: jacobian_matrix(_finite(problem, "Jacobian pixels (non-finite)", j), block)
+                   for s, j in jacobians.items()}
+        kind, here = self.spec.hessian, state.parameters
+        if kind == "cross":
+            total = np.zeros((problem.parameters.n, problem.parameters.n))
+            for sensor, jac in current.items():
+                other = source.images(problem, fields, spp=recipe.gradient_spp, seed=derive_seed(seeds[sensor], "cross"),
+                                      sensor=sensor)
+                total += hessian_of(jac, jacobian_matrix(_finite(problem, "Jacobian pixels (non-finite)", other), block))
+            return total * sensors / len(current)
+        fresh = [[jac for at, jac in pairs if np.max(np.abs(at - here)) <= FRESH * lr]
+                 for pairs in state.jacobians.values()] if kind == "successive" else []
+        remembered = [hessian_of(*jacs[:2]) for jacs in fresh if jacs]
+        if remembered:
+            hessian = np.sum(remembered, axis=0) * sensors / len(remembered)
+        else:  # "product", or nothing fresh to remember
+            hessian = np.sum([hessian_of(jac) for jac in current.values()], axis=0) * sensors / len(current)
+        if kind == "successive":
+            for sensor, jac in current.items():
+                state.jacobians[sensor] = [(here.copy(), jac)] + state.jacobians.get(sensor, [])[:1]
+        return hessian
 
     # -------------------------------------------------------------- reports
 
-    def _plan(self, prepared: Prepared, method: GradientMethod, trainer: FieldTrainer | None,
-              choice: dict | None) -> dict:
-        problem = prepared.problem
+    def _plan(self, prepared: Prepared, built: Built, recipe: Recipe) -> dict:
+        problem, trainer = prepared.problem, built.trainer
         width, height = problem.scene.resolution()
         return {
             "method": self.method_name,
-            "auto": choice,
-            "realised_by": type(method).__name__,
+            "recipe": recipe.to_json(),
+            "realised_by": type(built.method).__name__,
             "fields": {"radiance": trainer is not None and trainer.radiance is not None,
                        "differential": trainer is not None and trainer.differential is not None},
             "scalars": problem.parameters.labels,
@@ -271,19 +335,22 @@ class InverseRenderingRun:
             "sensors": sorted(prepared.targets),
             "resolution": [width, height],
             "depths": prepared.depths,
+            "prepared_seconds": prepared.seconds,
             "render": self.spec.render.model_dump(mode="json"),
             "training": self.spec.training.model_dump(mode="json"),
             "effects": problem.plan.to_json() if problem.plan is not None else None,
             "iterations": self.spec.iterations,
         }
 
-    def _checkpoint(self, state: RunState, trainer: FieldTrainer | None) -> None:
+    def _checkpoint(self, state: RunState, recipe: Recipe, trainer: FieldTrainer | None) -> None:
         blob = checkpoint.dumps(spec=self.spec, next_iteration=state.next_iteration, parameters=state.parameters,
-                                adam=state.adam.state_dict(), trainer=None if trainer is None else trainer.state_dict(),
-                                method=self.method_name)
+                                optimizer=state.optimizer.state_dict(), views_offset=state.views_offset,
+                                batch=(recipe.views, recipe.spp, recipe.gradient_spp), hessian=state.hessian,
+                                jacobians=state.jacobians,
+                                trainer=None if trainer is None else trainer.state_dict(), method=self.method_name)
         self.reporter.checkpoint(blob, state.next_iteration)
 
-    def _outcome(self, status: str, state: RunState | None, started: float, error: str | None = None,
+    def _outcome(self, status: Outcome, state: RunState | None, started: float, error: str | None = None,
                  field: str | None = None) -> RunOutcome:
         return RunOutcome(status=status, iterations=state.next_iteration if state is not None else 0,
                           seconds=time.perf_counter() - started,
@@ -296,5 +363,5 @@ def _finite(problem, what: str, array: np.ndarray) -> np.ndarray:
     bad = ~np.isfinite(array)
     if bad.any():
         problem.count_sanitized(what, int(bad.sum()))
-        array = np.where(bad, 0.0, array).astype(array.dtype)
+        array = np.asarray(np.where(bad, 0.0, array), dtype=array.dtype)
     return array

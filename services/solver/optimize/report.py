@@ -13,9 +13,11 @@ from typing import Literal, Protocol
 
 import numpy as np
 
+from schemas.outcomes import Outcome
 from schemas.records import IterationRecord
 
-StopReason = Literal["canceled", "interrupted"]
+#: What a host may ask a running job for (:data:`schemas.outcomes.STOPS`).
+StopReason = Literal[Outcome.CANCELED, Outcome.INTERRUPTED]
 
 
 class RunReporter(Protocol):
@@ -30,9 +32,8 @@ class RunReporter(Protocol):
         """Target image of every sensor, ``(H, W, 3)`` float32 linear RGB."""
 
     def progress(self, kind: str, payload: dict) -> None:
-        """Signs of life between iterations: ``auto`` (the trial of an ``auto`` job started:
-        its candidates), ``warmup`` (steps done of planned, residual norms), ``resumed`` (the
-        iteration a resumed run continues from)."""
+        """Signs of life between iterations: ``warmup`` (steps done of planned, residual norms),
+        ``resumed`` (the iteration a resumed run continues from)."""
 
     def iteration(self, record: IterationRecord, renders: dict[int, np.ndarray] | None,
                   gradients: dict[int, np.ndarray] | None) -> None:
@@ -45,6 +46,10 @@ class RunReporter(Protocol):
     def should_stop(self) -> StopReason | None:
         """Polled between training steps and iterations: None to go on."""
 
+    def images_requested(self) -> bool:
+        """Polled once per iteration: whether someone asked for the images now (the dashboard);
+        the iteration then writes them whatever the schedule."""
+
 
 class RunAborted(Exception):
     """Raised by a host's reporter to end the run without recording anything (it propagates
@@ -56,20 +61,9 @@ class RunOutcome:
     """How a run ended. ``interrupted``: the host asked it to stop and will resume it later from
     its last checkpoint (written before returning)."""
 
-    status: Literal["succeeded", "failed", "canceled", "interrupted"]
+    status: Outcome  # never ``fenced``: that is the host's verdict on an attempt, not the run's
     iterations: int
     seconds: float
     parameters: list[float] | None = None
     error: str | None = None
     field: str | None = None
-
-
-class NullReporter:
-    """Reports nothing; never asks to stop (tests, benchmarks)."""
-
-    def plan(self, plan): pass
-    def targets(self, images): pass
-    def progress(self, kind, payload): pass
-    def iteration(self, record, renders, gradients): pass
-    def checkpoint(self, state, next_iteration): pass
-    def should_stop(self): return None

@@ -13,17 +13,19 @@ from __future__ import annotations
 
 import base64
 import logging
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from schemas.errors import InvalidJob
-from schemas.job import BuiltinScene, ImageTargets, JobSpec
+from schemas.job import BuiltinScene, ImageTargets, JobSpec, SyntheticTargets
 from schemas.methods import AUTO, Method
+from services.solver.estimators.layout import DerivativeLayout
 from services.solver.estimators.methods import method_class
 from services.solver.estimators.problem import Problem
-from services.solver.estimators.render import converged_depth, render
+from services.solver.estimators.render import UNBIASED, PathDepth, missing_energy, render
 from services.solver.scene.facts import SceneFacts, probe_scene
 from services.solver.scene.load import LoadedScene, load_scene
 from services.solver.scene.params import ParameterSet
@@ -41,8 +43,10 @@ MIN_ROUGHNESS = 1e-3
 class Prepared:
     """A job ready to run: ``init``, ``lower``, ``upper`` are ``(P,)``; ``targets`` maps a sensor
     index to its ``(H, W, 3)`` target; ``target_values`` is ``(P,)`` for synthetic targets;
-    ``depths`` holds the path depths of the synthetic target (``target``) and of the path-traced
-    candidate and ``prb`` (``render``), and how they were chosen."""
+    ``depths`` describes the path depths of the synthetic target (``target``) and of the
+    path-traced candidate and ``prb`` (``render``, which is ``depth``), with any warning;
+    ``seconds`` what preparing took: ``load`` (scene and checks), ``plan`` (the effect probe and
+    the depth check: decisions), ``targets`` (rendering synthetic targets)."""
 
     spec: JobSpec
     problem: Problem
@@ -53,6 +57,8 @@ class Prepared:
     target_values: np.ndarray | None
     depths: dict = field(default_factory=dict)
     facts: SceneFacts | None = None
+    depth: PathDepth = UNBIASED
+    seconds: dict = field(default_factory=dict)
 
 
 def load_job_scene(spec: JobSpec, scene_file: Path | None = None) -> LoadedScene:
@@ -164,54 +170,83 @@ def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None
 
 def prepare(spec: JobSpec, *, scene_file: Path | None = None, method: str | None = None) -> Prepared:
     """Load and check everything a job needs, plan the effects to simulate (for ``method``,
-    default the job's; ``prb``'s for an ``auto`` job until :func:`plan_for` names the choice), and
-    render synthetic targets (deep enough to have converged, unless the job fixes
-    ``targets.synthetic.max_depth``)."""
+    default the job's; ``prb``'s for an ``auto`` job), and render synthetic targets (unbiased:
+    unbounded paths with Russian roulette, unless the job fixes ``targets.synthetic.max_depth``)."""
+    started = time.perf_counter()
     c = check(spec, scene_file)
+    loaded = time.perf_counter()
     problem = Problem(c.scene, c.parameters, delta_depth=spec.training.delta_depth)
-    facts = probe_scene(c.scene, c.parameters, seed=derive_seed(spec.seed, "probe"), max_delta_depth=64)
+    if not spec.effects.merge_channels:
+        problem.layout = DerivativeLayout.full(c.parameters.n)
     name = method or (Method.PRB if spec.method == AUTO else spec.method)
-    problem.apply_plan(plan_effects(facts, name, method_class(name).uses, spec.effects, spec.training.delta_depth))
-    for warning in problem.plan.warnings:
+    facts = None
+    if needs_effect_plan(name, spec.jacobian):
+        facts = probe_scene(c.scene, c.parameters, seed=derive_seed(spec.seed, "probe"), max_delta_depth=64)
+        problem.apply_plan(plan_effects(facts, name, method_class(name).uses, spec.effects, spec.training.delta_depth))
+    warnings: list[str] = []
+    depths = _depths(spec, problem, c, warnings)
+    for warning in problem.plan.warnings if problem.plan is not None else []:
         log.warning("effect plan: %s", warning)
-    depths = _depths(spec, problem, c)
+    planned = time.perf_counter()
     targets = dict(c.targets)
     if c.target_values is not None:
+        assert isinstance(spec.targets, SyntheticTargets)  # target values come from synthetic targets only
+        synthetic = spec.targets.synthetic
         c.parameters.assign(c.target_values)
         for sensor in range(c.scene.sensor_count):
-            targets[sensor] = render(problem, spp=spec.targets.synthetic.spp, sensor=sensor,
-                                     seed=derive_seed(spec.seed, "target", sensor), max_depth=depths["target"])
+            targets[sensor] = render(problem, spp=synthetic.spp, sensor=sensor,
+                                     seed=derive_seed(spec.seed, "target", sensor), depth=depths["target"])
     c.parameters.assign(c.init)
     log.info("prepared job: %d scalars, %d target(s)", c.parameters.n, len(targets))
-    return Prepared(spec, problem, c.init, c.lower, c.upper, targets, c.target_values, depths, facts)
+    described: dict = {name: depth.describe() for name, depth in depths.items()}
+    if warnings:
+        described["warnings"] = warnings
+    seconds = {"load": loaded - started, "plan": planned - loaded, "targets": time.perf_counter() - planned}
+    return Prepared(spec, problem, c.init, c.lower, c.upper, targets, c.target_values, described, facts,
+                    depths["render"], seconds)
 
 
-def plan_for(prepared: Prepared, method: str) -> None:
-    """Re-plan the prepared problem's effects for ``method`` (the scene facts are kept: no probe)."""
-    if prepared.facts is None:
-        raise ValueError("plan_for needs the scene facts that prepare() measured")
+def needs_effect_plan(method: str, jacobian: str = "method") -> bool:
+    """Whether a run of ``method`` needs the effect planner's probe: when it trains a field (the
+    planner decides which and for which scalars). ``prb`` simulates every effect by path tracing,
+    and its channel groups are known from the parameters' shapes
+    (:meth:`~services.solver.estimators.layout.DerivativeLayout.by_component`)."""
+    return bool(method_class(method).uses) or jacobian == "differential-field"
+
+
+def plan_for(prepared: Prepared, method: str, jacobian: str = "method") -> None:
+    """Plan the prepared problem's effects for ``method`` (probing the scene the first time a
+    method needs the plan); nothing to do for a method that needs none."""
+    if not needs_effect_plan(method, jacobian):
+        return
     spec = prepared.spec
+    if prepared.facts is None:
+        problem = prepared.problem
+        problem.parameters.assign(prepared.init)
+        prepared.facts = probe_scene(problem.scene, problem.parameters, seed=derive_seed(spec.seed, "probe"),
+                                     max_delta_depth=64)
     prepared.problem.apply_plan(plan_effects(prepared.facts, method, method_class(method).uses, spec.effects,
                                              spec.training.delta_depth))
 
 
-def _depths(spec: JobSpec, problem: Problem, c: Checked) -> dict:
-    """Path depths of the synthetic target and of path-traced candidates and ``prb``: the job's,
-    else the depth at which the image converges (:func:`converged_depth`), measured at the target
-    and at the initial parameters (the larger holds along the way between them)."""
-    synthetic = None if c.target_values is None else spec.targets.synthetic
-    measured: dict[str, tuple[int, float]] = {}
-
-    def at(name: str, values: np.ndarray) -> int:
-        c.parameters.assign(values)
-        measured[name] = converged_depth(problem, seed=derive_seed(spec.seed, "depth", name))
-        return measured[name][0]
-
-    target = None
-    if synthetic is not None:
-        target = synthetic.max_depth or at("target", c.target_values)
-    candidate = spec.render.max_depth or max(at("init", c.init), measured.get("target", (0, 0))[0])
-    c.parameters.assign(c.init)
-    reasons = {name: f"image energy converged within {missing:.1e} at depth {d} (measured at the {name} values)"
-               for name, (d, missing) in measured.items()}
-    return {"target": target, "render": candidate, "measured": reasons}
+def _depths(spec: JobSpec, problem: Problem, c: Checked, warnings: list[str]) -> dict[str, PathDepth]:
+    """The path depths of the synthetic target (``target``) and of the path-traced candidate,
+    ``prb`` and its Jacobian (``render``): unbounded with Russian roulette unless the job fixes a
+    depth. A fixed depth that misses light at the initial values is a loud warning in the plan:
+    photographs have every bounce, so the optimizer would make up for the missing light with
+    brighter materials."""
+    depths = {"render": PathDepth(spec.render.max_depth, spec.render.rr_depth)}
+    if c.target_values is not None:
+        assert isinstance(spec.targets, SyntheticTargets)
+        synthetic = spec.targets.synthetic
+        depths["target"] = PathDepth(synthetic.max_depth, synthetic.rr_depth)
+    render_depth = depths["render"]
+    if not render_depth.unbiased:
+        missing = missing_energy(problem, render_depth, seed=derive_seed(spec.seed, "depth"))
+        if missing > 1e-3:
+            warnings.append(
+                f"render.max_depth {render_depth.max_depth} misses {missing:.1%} of the image's light at the initial "
+                f"values (more where materials are brighter): the recovered parameters are biased; leave "
+                f"render.max_depth unset for unbounded paths with Russian roulette")
+            log.warning("path depth: %s", warnings[-1])
+    return depths

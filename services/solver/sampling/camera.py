@@ -14,7 +14,16 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from services.solver.jit_types import Float, Vector
 from services.solver.sampling.delta import DeltaChain, trace_through_delta
+
+#: ``sample1`` of ``Sensor.sample_ray``: the wavelength sample (unused by RGB variants).
+WAVELENGTH_SAMPLE: Float = 0.5
+
+
+def _shutter(sensor: mi.Sensor) -> Float:
+    """The time of every ray: the shutter's opening (a Python float, broadcast)."""
+    return sensor.shutter_open()
 
 
 @dataclass
@@ -48,16 +57,17 @@ def sample_camera(scene: mi.Scene, sensor: mi.Sensor, spp: int, seed: int,
     """
     film = sensor.film()
     width, height = (int(v) for v in film.crop_size())
-    offset = mi.ScalarVector2i(film.crop_offset())
+    offset: Vector = mi.ScalarVector2i(film.crop_offset())
     lanes = width * height * spp
     sampler = make_sampler(seed, lanes)
     with dr.suspend_grad():
         index = dr.arange(mi.UInt32, lanes) // spp
         pixel = mi.Vector2i(mi.Int32(index % width), mi.Int32(index // width)) + offset
-        position = mi.Vector2f(pixel) + sampler.next_2d()
+        jitter: Vector = sampler.next_2d()
+        position = mi.Vector2f(pixel) + jitter
         film_uv = (position - mi.Vector2f(offset)) / mi.ScalarVector2f(width, height)
         aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
-        ray, weight = sensor.sample_ray(sensor.shutter_open(), 0.5, film_uv, aperture)
+        ray, weight = sensor.sample_ray(_shutter(sensor), WAVELENGTH_SAMPLE, film_uv, aperture)
     chain = trace_through_delta(scene, ray, sampler, delta_depth, mi.Bool(True))
     splat = mi.Point2f(pixel) if film.rfilter().is_box_filter() else position
     return CameraSamples(chain, weight, splat, spp), sampler
@@ -82,7 +92,7 @@ def develop(sensor: mi.Sensor, samples: CameraSamples, values: np.ndarray) -> np
     for c in range(channels):
         film.prepare([])
         block = film.create_block()
-        value = [mi.Float(np.ascontiguousarray(values[:, c, i])) for i in range(3)]
+        value: list[Float] = [mi.Float(np.ascontiguousarray(values[:, c, i])) for i in range(3)]
         block.put(samples.position, value + ([mi.Float(1.0)] if has_alpha else []) + [mi.Float(1.0)])
         film.put_block(block)
         images.append(np.array(film.develop(), dtype=np.float32)[..., :3])
@@ -100,7 +110,7 @@ def camera_points(scene: mi.Scene, sensor: mi.Sensor, seed: int, count: int, del
     sampler = make_sampler(seed, lanes)
     with dr.suspend_grad():
         aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
-        ray, _ = sensor.sample_ray(sensor.shutter_open(), 0.5, sampler.next_2d(), aperture)
+        ray, _ = sensor.sample_ray(_shutter(sensor), WAVELENGTH_SAMPLE, sampler.next_2d(), aperture)
         chain = trace_through_delta(scene, ray, sampler, delta_depth, mi.Bool(True))
         valid = dr.compress(chain.active & queryable(chain.si, scene))
         kept = min(count, dr.width(valid))

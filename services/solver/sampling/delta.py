@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from services.solver.jit_types import Bool, Color
 from services.solver.sampling.surface import pure_delta
 
 
@@ -34,13 +35,13 @@ class DeltaChain:
     """
 
     si: mi.SurfaceInteraction3f
-    beta: mi.Spectrum
-    passed: mi.Bool
-    active: mi.Bool
+    beta: Color
+    passed: Bool
+    active: Bool
 
 
 def trace_through_delta(scene: mi.Scene, ray: mi.Ray3f, sampler: mi.Sampler, max_depth: int,
-                        active: mi.Bool) -> DeltaChain:
+                        active: Bool) -> DeltaChain:
     ctx = mi.BSDFContext()
     with dr.suspend_grad():
         si = scene.ray_intersect(ray, active)

@@ -31,14 +31,23 @@ as they must be for an unbiased estimate of ``∫ ∂f L``.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import drjit as dr
 import mitsuba as mi
 
+from services.solver.jit_types import Bool, Color, Float, Vector
 from services.solver.sampling.delta import trace_through_delta
 from services.solver.sampling.surface import queryable
-from services.solver.scene.params import ParameterSet
+
+
+class Tracked(Protocol):
+    """What the incident estimator needs of the optimized scalars: forward-mode derivatives of
+    its outputs (``services.solver.scene.params.ParameterSet``, whose probe uses this module)."""
+
+    def forward(self, outputs: Sequence, scalars: Sequence[int] | None = None) -> list[list]: ...
 
 #: Densities below this are treated as "cannot sample": the sample contributes nothing instead of
 #: an unbounded f / p (near-specular lobes away from their peak, grazing emitter samples).
@@ -69,16 +78,16 @@ class IncidentSamples:
     sanitized                number of lanes whose non-finite values were zeroed
     """
 
-    emitted: mi.Color3f
-    throughput: mi.Color3f
+    emitted: Color
+    throughput: Color
     d_emitted: list
-    d_throughput: list
+    d_throughput: list | None
     hit: mi.SurfaceInteraction3f
-    hit_surface: mi.Bool
+    hit_surface: Bool
     sanitized: int = 0
 
 
-def _finite(value: mi.Color3f) -> mi.Bool:
+def _finite(value: Color) -> Bool:
     return dr.all(dr.isfinite(value))
 
 
@@ -103,21 +112,21 @@ class IncidentGeometry:
     """
 
     si: mi.SurfaceInteraction3f
-    active: mi.Bool
+    active: Bool
     ds: mi.DirectionSample3f
-    active_e: mi.Bool
-    wo_e: mi.Vector3f
-    w_e: mi.Float
-    wo_b: mi.Vector3f
-    pdf_b: mi.Float
-    active_b: mi.Bool
-    delta_b: mi.Bool
-    delta_weight: mi.Spectrum
-    beta: mi.Spectrum
+    active_e: Bool
+    wo_e: Vector
+    w_e: Float
+    wo_b: Vector
+    pdf_b: Float
+    active_b: Bool
+    delta_b: Bool
+    delta_weight: Color
+    beta: Color
     hit: mi.SurfaceInteraction3f
-    hits_emitter: mi.Bool
-    w_b: mi.Float
-    hit_surface: mi.Bool
+    hits_emitter: Bool
+    w_b: Float
+    hit_surface: Bool
 
     def schedule(self) -> None:
         """Materialise every lane (so that later evaluations do not re-trace the sampling)."""
@@ -127,7 +136,7 @@ class IncidentGeometry:
 
 
 def sample_geometry(scene: mi.Scene, si: mi.SurfaceInteraction3f, sampler: mi.Sampler, *, delta_depth: int,
-                    active: mi.Bool | bool = True) -> IncidentGeometry:
+                    active: Bool = True) -> IncidentGeometry:
     """Draw one emitter sample and one BSDF sample per lane of ``si`` (detached) and trace the
     BSDF ray through delta surfaces to ``x'``. Nothing here is differentiated."""
     active = mi.Bool(active) & si.is_valid()
@@ -197,13 +206,13 @@ def _evaluate(scene, g: IncidentGeometry, attach_bsdf: bool = True, attach_emiss
 
 
 def sample_incident(scene: mi.Scene, si: mi.SurfaceInteraction3f, sampler: mi.Sampler, *,
-                    delta_depth: int, parameters: ParameterSet | None = None, scalars=None,
+                    delta_depth: int, parameters: Tracked | None = None, scalars=None,
                     attach_bsdf: bool = True, attach_emission: bool = True,
-                    active: mi.Bool | bool = True) -> IncidentSamples:
+                    active: Bool = True) -> IncidentSamples:
     """One emitter sample and one BSDF sample per lane of ``si`` (Eq. 9 with MIS).
 
     When ``parameters`` is given, the caller has enabled tracking on them
-    (:meth:`ParameterSet.tracking`) and the derivatives of ``emitted`` and ``throughput`` with
+    (``ParameterSet.tracking``) and the derivatives of ``emitted`` and ``throughput`` with
     respect to every optimized scalar (or the ``scalars`` listed) are returned too.
     ``∂throughput`` is ``None`` without ``attach_bsdf``: only ``∂f`` makes it non-zero.
     """
@@ -212,20 +221,21 @@ def sample_incident(scene: mi.Scene, si: mi.SurfaceInteraction3f, sampler: mi.Sa
                              attach_emission=attach_emission)
 
 
-def evaluate_incident(scene: mi.Scene, geometry: IncidentGeometry, *, parameters: ParameterSet | None = None,
+def evaluate_incident(scene: mi.Scene, geometry: IncidentGeometry, *, parameters: Tracked | None = None,
                       scalars=None, attach_bsdf: bool = True, attach_emission: bool = True) -> IncidentSamples:
-    """``emitted``, ``throughput`` and (with ``parameters``, under :meth:`ParameterSet.tracking`)
+    """``emitted``, ``throughput`` and (with ``parameters``, under ``ParameterSet.tracking``)
     their forward-mode derivatives on already sampled ``geometry``: the BSDF and emitter values of
     Eq. 9 for the scene's current parameters. :func:`sample_incident` is
     ``evaluate_incident(sample_geometry(...))``; a pool calls it again after a parameter step."""
     emitted, throughput = _evaluate(scene, geometry, attach_bsdf, attach_emission)
     hit, hit_surface = geometry.hit, geometry.hit_surface
-    d_emitted, d_throughput = [], ([] if attach_bsdf else None)
+    d_emitted: list[Color] = []
+    d_throughput: list[Color] | None = [] if attach_bsdf else None
     if parameters is not None:
         outputs = [emitted, throughput] if attach_bsdf else [emitted]
         for grads in parameters.forward(outputs, scalars):
             d_emitted.append(grads[0])
-            if attach_bsdf:
+            if d_throughput is not None:
                 d_throughput.append(grads[1])
 
     emitted, throughput = dr.detach(emitted), dr.detach(throughput)
@@ -233,7 +243,8 @@ def evaluate_incident(scene: mi.Scene, geometry: IncidentGeometry, *, parameters
     ok = _finite(emitted) & _finite(throughput)
     for d in d_emitted + (d_throughput or []):
         ok &= _finite(d)
-    sanitized = int(dr.count(~ok)[0]) if dr.width(ok) else 0
+    bad: Vector = dr.count(~ok)
+    sanitized = int(bad[0]) if dr.width(ok) else 0
     if sanitized:
         emitted = dr.select(ok, emitted, 0.0)
         throughput = dr.select(ok, throughput, 0.0)

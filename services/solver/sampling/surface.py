@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from services.solver.jit_types import Color, MitsubaObject
+
 
 def _smooth(flags) -> mi.Bool:
     return mi.has_flag(flags, mi.BSDFFlags.Smooth)
@@ -82,9 +84,10 @@ class SurfaceSampler:
         """Draw ``count`` points; ``sampler`` must have been seeded with ``count`` lanes."""
         with dr.suspend_grad():
             slot = self.distribution.sample(sampler.next_1d())
-            shape = dr.gather(mi.ShapePtr, self.shapes_dr, dr.gather(mi.UInt32, self.shape_index, slot))
+            shape: MitsubaObject = dr.gather(mi.ShapePtr, self.shapes_dr, dr.gather(mi.UInt32, self.shape_index, slot))
             ps = shape.sample_position(0.0, sampler.next_2d())
-            si = mi.SurfaceInteraction3f(ps, dr.zeros(mi.Color0f))
+            no_wavelengths: Color = dr.zeros(mi.Color0f)
+            si = mi.SurfaceInteraction3f(ps, no_wavelengths)
             si.shape = shape
             both = two_sided(shape.bsdf().flags())
             u = sampler.next_2d()

@@ -8,14 +8,15 @@ import numpy as np
 import torch
 
 from services.solver.fields.query import FieldQuery
+from services.solver.jit_types import Bool, Color, Vector
 
 
-def rgb(value: mi.Color3f) -> torch.Tensor:
+def rgb(value: Color | Vector) -> torch.Tensor:
     """``(K, 3)`` float32 tensor of a ``mi.Color3f`` / ``mi.Vector3f`` with ``K`` lanes."""
     return torch.from_numpy(np.ascontiguousarray(np.array(value, dtype=np.float32).reshape(3, -1).T))
 
 
-def mask(value: mi.Bool) -> torch.Tensor:
+def mask(value: Bool) -> torch.Tensor:
     """``(K,)`` bool tensor."""
     return torch.from_numpy(np.array(value, dtype=bool).reshape(-1))
 

@@ -23,7 +23,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from services.solver.sampling.camera import make_sampler, sample_camera
+from services.solver.jit_types import Bool, Float
+from services.solver.sampling.camera import WAVELENGTH_SAMPLE, make_sampler, sample_camera
 from services.solver.sampling.incident import sample_incident
 from services.solver.sampling.surface import SurfaceSampler, pure_delta, queryable, residual_shapes
 from services.solver.sampling.tensors import rgb
@@ -57,7 +58,7 @@ class SceneFacts:
     scalars: list[ScalarFacts] = field(default_factory=list)
 
 
-def _delta_lengths(scene: mi.Scene, ray: mi.Ray3f, sampler: mi.Sampler, cap: int, active: mi.Bool):
+def _delta_lengths(scene: mi.Scene, ray: mi.Ray3f, sampler: mi.Sampler, cap: int, active: Bool):
     """Length of the delta chain of each ray (``cap + 1`` for chains not finished by ``cap``)."""
     length = mi.UInt32(0)
     si = scene.ray_intersect(ray, active)
@@ -103,7 +104,8 @@ def probe_scene(scene: LoadedScene, parameters: ParameterSet, *, probe_rays: int
     spp = max(1, probe_rays // max(1, width * height))
     samples, sampler = sample_camera(mi_scene, scene.sensor(0), spp, derive_seed(seed, "probe", "camera"), max_delta_depth)
     if delta:
-        camera_rays, _ = scene.sensor(0).sample_ray(0.0, 0.5, sampler.next_2d(), mi.Point2f(0.5))
+        start: Float = 0.0
+        camera_rays, _ = scene.sensor(0).sample_ray(start, WAVELENGTH_SAMPLE, sampler.next_2d(), mi.Point2f(0.5))
         lengths.append(_delta_lengths(mi_scene, camera_rays, sampler, max_delta_depth, mi.Bool(True)))
     magnitude = np.zeros((parameters.n, 3))
     first: list[int | None] = [None] * parameters.n
@@ -133,7 +135,8 @@ def probe_scene(scene: LoadedScene, parameters: ParameterSet, *, probe_rays: int
         delta_shapes=delta, probe_rays=probe_rays, interreflection_hits=hits,
         delta_chain_counts=[int(c) for c in counts[:max_delta_depth + 1]],
         delta_unfinished=int(counts[max_delta_depth + 1:].sum()), probe_depth=probe_depth,
-        scalars=[ScalarFacts(label, info_owner, tuple(float(v) for v in magnitude[i]), first[i])
+        scalars=[ScalarFacts(label, info_owner, (float(magnitude[i, 0]), float(magnitude[i, 1]), float(magnitude[i, 2])),
+                             first[i])
                  for i, (label, info_owner) in enumerate(_owners(parameters))],
     )
 

@@ -74,6 +74,7 @@ def load_scene(
     elif mitsuba_dict is not None:
         scene, label, where = mi_.load_dict(mitsuba_dict, optimize=False), "dict", None
     else:
+        assert xml_path is not None  # exactly one source was checked above
         xml_path = Path(xml_path).resolve()
         if not xml_path.is_file():
             raise FileNotFoundError(f"scene file {xml_path} does not exist")

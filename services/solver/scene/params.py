@@ -184,6 +184,17 @@ class ParameterSet:
         onehot[scalar.component] = 1.0
         return scalar.key, _like(template, onehot)
 
+    def tangents(self, indices: Sequence[int]) -> dict[str, object]:
+        """The tangent selecting the sum of scalars ``indices``: ``{key: value-shaped array}`` with
+        a 1 at each selected component (one forward-mode pass then gives ``Σ_i ∂/∂p_i``)."""
+        onehots: dict[str, np.ndarray] = {}
+        for index in indices:
+            scalar = self.scalars[index]
+            if scalar.key not in onehots:
+                onehots[scalar.key] = np.zeros(_as_numpy(self.params[scalar.key]).size)
+            onehots[scalar.key][scalar.component] = 1.0
+        return {key: _like(self.params[key], onehot) for key, onehot in onehots.items()}
+
     def forward(self, outputs: Sequence, scalars: Sequence[int] | None = None) -> list[list]:
         """Forward-mode derivatives ``∂ output / ∂ p_i`` for every scalar ``i`` (or the listed ones).
 

@@ -15,6 +15,7 @@ from services.solver.estimators.methods.camera_hit import Direct, NdrfLhs, NdrfR
 from services.solver.estimators.methods.prb import Prb
 
 if TYPE_CHECKING:
+    from services.solver.estimators.render import PathDepth
     from services.solver.scene.planner import EffectPlan
 
 METHODS: dict[Method, type[GradientMethod]] = {cls.name: cls for cls in (NdrfLhs, NdrfRhs, RadianceCache, Direct, Prb)}
@@ -31,10 +32,10 @@ def method_class(name: str | Method) -> type[GradientMethod]:
         raise ValueError(f"unknown gradient method {name!r}; known: {', '.join(METHODS)}") from None
 
 
-def make_method(name: str | Method, plan: EffectPlan | None = None, max_depth: int = 12) -> GradientMethod:
+def make_method(name: str | Method, plan: EffectPlan | None = None, depth: PathDepth | None = None) -> GradientMethod:
     """The method ``name`` as the effect plan shapes it (see each class's ``from_plan``);
-    ``max_depth`` is the path depth of path-traced methods (``prb``)."""
-    return method_class(name).from_plan(plan, max_depth)
+    ``depth`` is the path depth of path-traced methods (``prb`` refuses to be built without one)."""
+    return method_class(name).from_plan(plan, depth)
 
 
 __all__ = ["METHODS", "Fields", "GradientMethod", "OneBounce", "contract", "make_method", "method_class"]

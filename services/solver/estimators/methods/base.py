@@ -7,8 +7,13 @@ integrators do:
                           calls every iteration. ``prb`` runs one adjoint pass whatever ``P``; the
                           camera-hit methods contract each camera ray's derivative with ``dz/dy`` at
                           its pixel, without forming per-scalar images.
-``images()``              per-scalar gradient images ``dI/dp``, ``(P, H, W, 3)`` float32 (Eq. 3): what
-                          the loop writes every ``images_every`` iterations and ``ndrf gradient`` writes.
+``images()``              per-scalar gradient images ``dI/dp``, ``(P, H, W, 3)`` float32 (Eq. 3): the
+                          Jacobian of second-order steps, and what the loop writes on its images
+                          schedule and ``ndrf gradient`` writes.
+
+``candidate_and_gradient`` and ``candidate_gradient_and_images`` are what the loop calls: Sec. 5
+steps 2-5 for one view, without and with the Jacobian. Every method that traces paths takes the
+job's :class:`~services.solver.estimators.render.PathDepth` (there is no default depth).
 
 A method class declares its public ``name`` (a :class:`schemas.methods.Method`), the fields it can
 use (``uses``), and how it is built from an effect plan (:meth:`GradientMethod.from_plan`): the
@@ -29,12 +34,13 @@ from schemas.methods import Method
 
 if TYPE_CHECKING:
     from services.solver.estimators.problem import Problem
+    from services.solver.estimators.render import PathDepth
     from services.solver.fields.field import NeuralField
     from services.solver.scene.planner import EffectPlan
 
 RADIANCE, DIFFERENTIAL = "radiance", "differential"
 
-#: ``loss(y) -> (z, dz/dy)`` for a candidate ``y`` of one sensor (``services.solver.optimize.losses``).
+#: ``loss(y) -> (z, dz/dy)`` for a candidate ``y`` of one sensor (``services.solver.estimators.losses``).
 Loss = Callable[[np.ndarray], tuple[float, np.ndarray]]
 
 
@@ -59,8 +65,9 @@ class GradientMethod(ABC):
         self.needs_differential = differential
 
     @classmethod
-    def from_plan(cls, plan: EffectPlan | None, max_depth: int = 12) -> GradientMethod:
-        """The method as the plan shapes it (default: every field it can use)."""
+    def from_plan(cls, plan: EffectPlan | None, depth: PathDepth | None) -> GradientMethod:
+        """The method as the plan shapes it (default: every field it can use); ``depth`` is the path
+        depth of the methods that trace paths."""
         return cls(radiance=RADIANCE in cls.uses, differential=DIFFERENTIAL in cls.uses)
 
     def check(self, fields: Fields) -> None:
@@ -80,18 +87,31 @@ class GradientMethod(ABC):
         return contract(self.images(problem, fields, spp=spp, seed=seed, sensor=sensor), dz_dy)
 
     def candidate_and_gradient(self, problem: Problem, fields: Fields, loss: Loss, *, spp: int, gradient_spp: int,
-                               seed: int, sensor: int = 0, max_depth: int = 12) -> tuple[np.ndarray, float, np.ndarray]:
+                               seed: int, depth: PathDepth, sensor: int = 0) -> tuple[np.ndarray, float, np.ndarray]:
         """Sec. 5 steps 2-5 for one sensor: the candidate ``y`` ``(H, W, 3)``, ``z(y)`` and ``dz/dp``
-        ``(P,)``. ``loss(y) -> (z, dz/dy)``. The default path-traces ``y`` (``spp``, ``max_depth``)
+        ``(P,)``. ``loss(y) -> (z, dz/dy)``. The default path-traces ``y`` (``spp``, ``depth``)
         with its own samples, then calls :meth:`loss_gradient` (``gradient_spp``, independent
         samples: the estimate of ``dz/dp`` is unbiased for ``l2``)."""
         from services.solver.estimators.render import render
         from services.solver.seeds import derive_seed
 
-        candidate = render(problem, spp=spp, seed=derive_seed(seed, "candidate"), sensor=sensor, max_depth=max_depth)
+        candidate = render(problem, spp=spp, seed=derive_seed(seed, "candidate"), sensor=sensor, depth=depth)
         z, dz_dy = loss(candidate)
         return candidate, z, self.loss_gradient(problem, fields, dz_dy, spp=gradient_spp,
                                                 seed=derive_seed(seed, "gradient"), sensor=sensor)
+
+    def candidate_gradient_and_images(self, problem: Problem, fields: Fields, loss: Loss, *, spp: int,
+                                      gradient_spp: int, seed: int, depth: PathDepth,
+                                      sensor: int = 0) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+        """:meth:`candidate_and_gradient` plus the Jacobian ``dI/dp`` ``(P, H, W, 3)`` of the same
+        view (what a second-order step needs). The default adds :meth:`images` with the gradient's
+        own seed (the camera-hit methods then query the very rays ``dz/dp`` came from)."""
+        from services.solver.seeds import derive_seed
+
+        candidate, z, dz_dp = self.candidate_and_gradient(problem, fields, loss, spp=spp, gradient_spp=gradient_spp,
+                                                          seed=seed, depth=depth, sensor=sensor)
+        images = self.images(problem, fields, spp=gradient_spp, seed=derive_seed(seed, "gradient"), sensor=sensor)
+        return candidate, z, dz_dp, images
 
 
 def contract(images: np.ndarray, dz_dy: np.ndarray) -> np.ndarray:

@@ -4,7 +4,7 @@ Chosen by the job's ``render`` settings (``schemas.job.RenderSpec``):
 
 ``render.candidate = "field"``     the candidate ``y`` is ``E + L_phi`` at the cached first hits
                                    (no path tracing; every bounce, with the field's bias) instead
-                                   of a path tracer of depth ``render.max_depth`` (``"path"``)
+                                   of a path tracer (``"path"``, the job's path depth)
 ``render.first_hits = "cached"``   ``ndrf-lhs`` queries ``dL_theta`` at the cached first hits and
                                    contracts ``dz/dy`` per ray (Eq. 10, 11)
 
@@ -24,6 +24,7 @@ from services.solver.estimators.first_hits import FirstHitCache
 from services.solver.estimators.methods.base import Fields, GradientMethod, Loss
 from services.solver.estimators.methods.camera_hit import NdrfLhs
 from services.solver.estimators.problem import Problem
+from services.solver.estimators.render import PathDepth
 
 log = logging.getLogger(__name__)
 
@@ -54,14 +55,23 @@ class CachedFirstHits(GradientMethod):
             return self.cache.loss_gradient(sensor, fields.differential, dz_dy)
         return self.inner.loss_gradient(problem, fields, dz_dy, spp=spp, seed=seed, sensor=sensor)
 
+    def candidate_gradient_and_images(self, problem: Problem, fields: Fields, loss: Loss, *, spp: int,
+                                      gradient_spp: int, seed: int, depth: PathDepth,
+                                      sensor: int = 0) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+        if not self.field_candidate and not self.cached_lhs:  # nothing cached serves this method
+            return self.inner.candidate_gradient_and_images(problem, fields, loss, spp=spp, gradient_spp=gradient_spp,
+                                                            seed=seed, depth=depth, sensor=sensor)
+        return super().candidate_gradient_and_images(problem, fields, loss, spp=spp, gradient_spp=gradient_spp,
+                                                     seed=seed, depth=depth, sensor=sensor)
+
     def candidate_and_gradient(self, problem: Problem, fields: Fields, loss: Loss, *, spp: int, gradient_spp: int,
-                               seed: int, sensor: int = 0, max_depth: int = 12) -> tuple[np.ndarray, float, np.ndarray]:
+                               seed: int, depth: PathDepth, sensor: int = 0) -> tuple[np.ndarray, float, np.ndarray]:
         if not self.field_candidate:
             if not self.cached_lhs:
                 return self.inner.candidate_and_gradient(problem, fields, loss, spp=spp, gradient_spp=gradient_spp,
-                                                         seed=seed, sensor=sensor, max_depth=max_depth)
+                                                         seed=seed, depth=depth, sensor=sensor)
             return super().candidate_and_gradient(problem, fields, loss, spp=spp, gradient_spp=gradient_spp,
-                                                  seed=seed, sensor=sensor, max_depth=max_depth)
+                                                  seed=seed, depth=depth, sensor=sensor)
         self.check(fields)
         candidate = self.cache.candidate(sensor, fields.radiance)
         z, dz_dy = loss(candidate)

@@ -66,11 +66,10 @@ class CameraHitMethod(GradientMethod):
             return np.zeros((problem.parameters.n, height, width, 3), np.float32)
         sensor_obj = problem.scene.sensor(sensor)
         passes, per_pass = passes_for(width * height, spp, RAYS_PER_PASS)
-        total = None
+        total = np.zeros((problem.layout.active, height, width, 3))
         for k in range(passes):
             samples, values = self._rays(problem, fields, sensor_obj, per_pass, derive_seed(seed, "camera", k))
-            part = develop(sensor_obj, samples, values)
-            total = part if total is None else total + part
+            total += develop(sensor_obj, samples, values)
         return problem.layout.scatter_images((total / passes).astype(np.float32), problem.parameters.n)
 
     def loss_gradient(self, problem, fields, dz_dy, *, spp, seed, sensor=0):
@@ -135,7 +134,7 @@ class NdrfLhs(CameraHitMethod):
         super().__init__(radiance=radiance, differential=differential)
 
     @classmethod
-    def from_plan(cls, plan, max_depth=12):
+    def from_plan(cls, plan, depth):
         if plan is not None and not plan.differential_field.value:
             return OneBounce(cls.name, radiance=bool(plan.radiance_field.value), differential=False)
         return cls()
@@ -154,7 +153,7 @@ class OneBounce(CameraHitMethod):
     uses = frozenset({RADIANCE, DIFFERENTIAL})
 
     def __init__(self, name: Method, *, radiance: bool, differential: bool):
-        self.name = name  # the public method this instance realises
+        self.name = name  # type: ignore[misc]  # the public method this instance realises
         super().__init__(radiance=radiance, differential=differential)
 
     def differential_radiance(self, problem, fields, si, where, sampler):
@@ -186,7 +185,7 @@ class NdrfRhs(OneBounce):
         super().__init__(Method.NDRF_RHS, radiance=radiance, differential=differential)
 
     @classmethod
-    def from_plan(cls, plan, max_depth=12):
+    def from_plan(cls, plan, depth):
         if plan is None:
             return cls()
         return cls(radiance=bool(plan.radiance_field.value), differential=bool(plan.differential_field.value))
@@ -202,7 +201,7 @@ class RadianceCache(OneBounce):
         super().__init__(Method.RADIANCE_CACHE, radiance=radiance, differential=differential)
 
     @classmethod
-    def from_plan(cls, plan, max_depth=12):
+    def from_plan(cls, plan, depth):
         return cls(radiance=True if plan is None else bool(plan.radiance_field.value))
 
 

@@ -33,6 +33,9 @@ export function jobView(root, jobId) {
   const connection = h("span.connection", { dataset: { testid: "connection" } });
   const cancel = h("button.btn.btn-danger", { type: "button", hidden: true, dataset: { testid: "cancel-button" },
     onclick: () => cancelJob() }, "Cancel job");
+  const imagesNow = h("button.btn", { type: "button", hidden: true, dataset: { testid: "images-button" },
+    title: "Render every view and the gradient images at the next iteration (by default they take at most 5% of the run)",
+    onclick: () => requestImages() }, "Images now");
   const alert = h("div.alert.alert-error", { hidden: true, dataset: { testid: "job-error" } });
   const stats = {
     iteration: stat("Iteration", "iteration-counter"), loss: stat("Loss", "loss-value"),
@@ -53,7 +56,7 @@ export function jobView(root, jobId) {
   clear(root,
     h("div.page-head", h("a.back", { href: "#/jobs" }, "← Jobs"),
       h("div.title-block", h("div.title-line", title, badge, connection), idLine, experimentLink),
-      h("span.spacer"), sweep, cancel),
+      h("span.spacer"), sweep, imagesNow, cancel),
     alert,
     h("div.stats", Object.values(stats).map((s) => s.element)),
     h("div.grid-2",
@@ -187,6 +190,16 @@ export function jobView(root, jobId) {
     schedule();
   }
 
+  async function requestImages() {
+    imagesNow.disabled = true;
+    try {
+      setJob(await postJSON(`${base}/images`));
+    } catch (error) {
+      if (error.status !== 409) showAlert(`Asking for images failed: ${problemText(error)}`);
+    }
+    schedule();
+  }
+
   // --------------------------------------------------------------------- view
   function draw() {
     const job = state.job;
@@ -198,6 +211,9 @@ export function jobView(root, jobId) {
     badge.replaceChildren(statusBadge(job.status, { dataset: { testid: "status-badge" } }));
     cancel.hidden = finished;
     cancel.disabled = state.canceling;
+    imagesNow.hidden = job.status !== "running";
+    imagesNow.disabled = Boolean(job.images_requested);
+    imagesNow.textContent = job.images_requested ? "Images at the next iteration…" : "Images now";
     cancel.textContent = state.canceling ? "Canceling…" : "Cancel job";
     if (job.error) showAlert(job.field ? `${job.field}: ${job.error}` : job.error);
 
@@ -238,7 +254,7 @@ export function jobView(root, jobId) {
     warmupBar.style.width = `${(100 * fraction).toFixed(1)}%`;
     warmupText.dataset.steps = String(event.steps);
     warmupText.textContent = `Warm-up: ${event.steps} / ${event.planned} training steps before the first gradient`
-      + ` · residual L_φ ${fmtNum(event.residual_primal, 3)} · dL_θ ${fmtNum(event.residual_differential, 3)}`;
+      + ` · residual L_φ ${fmtNum(event.residual_radiance, 3)} · dL_θ ${fmtNum(event.residual_differential, 3)}`;
   }
 
   function drawStats(job, records, finished) {
@@ -249,8 +265,8 @@ export function jobView(root, jobId) {
       ? `${job.method}: ${job.plan.method}` : job.method;
     const last = records[records.length - 1];
     stats.loss.value.textContent = fmtNum(last ? last.loss : job.metrics?.loss, 4);
-    stats.loss.sub.textContent = last && last.residual_primal !== undefined
-      ? `residuals ${fmtNum(last.residual_primal, 2)} / ${fmtNum(last.residual_differential, 2)}` : "";
+    stats.loss.sub.textContent = last && last.residual_radiance !== undefined
+      ? `residuals ${fmtNum(last.residual_radiance, 2)} / ${fmtNum(last.residual_differential, 2)}` : "";
     const targets = job.plan?.target_values;
     const values = currentValues(job.plan, records);
     stats.error.value.textContent = targets && values

@@ -7,20 +7,20 @@ import { clearErrors, errorSlot, field, fileBase64, numberInput, readNumber, rea
 import { scenePicker } from "./scene-picker.js";
 
 const METHODS = [
+  ["auto", "choose the whole recipe (method, optimizer, views per iteration); the plan says why"],
   ["ndrf-lhs", "NDRF, LHS query: dL_θ at the camera hits (most accurate)"],
   ["ndrf-rhs", "NDRF, RHS query: one bounce, then dL_θ at the secondary hits"],
   ["radiance-cache", "Radiance cache: L_φ at the secondary hits, no indirect derivative"],
   ["direct", "Direct illumination only (no fields)"],
   ["prb", "Mitsuba's Path Replay Backpropagation (reference)"],
-  ["auto", "time prb, ndrf-lhs and ndrf-rhs on this scene, run the fastest (the plan says why)"],
 ];
 
 // [path, label, placeholder (the API default), help]
 const BUDGET = [
   ["iterations", "Iterations", "60"],
   ["learning_rate", "Learning rate", "0.05", "Adam, scene parameters"],
-  ["render.spp", "Render spp", "16", "candidate render"],
-  ["render.gradient_spp", "Gradient spp", "16"],
+  ["render.spp", "Render spp", "1", "candidate render"],
+  ["render.gradient_spp", "Gradient spp", "1"],
   ["seed", "Seed", "0"],
 ];
 const TRAINING = [
@@ -31,8 +31,8 @@ const TRAINING = [
 ];
 const ADVANCED = [
   ["final_learning_rate_ratio", "Final learning-rate ratio", "0.1"],
-  ["render.max_depth", "Max path depth", "12"],
-  ["images_every", "Images every", "1", "iterations"],
+  ["render.max_depth", "Max path depth", "∞", "empty = unbounded, Russian roulette keeps it unbiased"],
+  ["images_every", "Images every", "auto", "iterations; empty = 5% of the time"],
   ["checkpoint_every", "Checkpoint every", "10", "iterations"],
 ];
 

@@ -1,0 +1,60 @@
+"""The interface of an update rule of the scene parameters, documented once.
+
+An optimizer turns one iteration's gradient ``∇z = dz/dp`` ``(P,)`` (Eq. 10), and for the
+second-order rules the Gauss-Newton curvature ``H`` ``(P, P)``, into the next parameters,
+projected onto their bounds. Each subclass states its update rule in its docstring.
+
+``needs_curvature``   whether :meth:`step` needs ``H``: the loop then asks the gradient method
+                      (or the Jacobian source the job names) for the Jacobian ``J = dy/dp`` of the
+                      iteration's views and assembles ``H`` (:func:`.gauss_newton.gauss_newton_hessian`)
+``noise_dominated``   whether the recent steps look like noise rather than progress (second-order
+                      steps that keep reversing): ``views_per_iteration: "auto"`` then doubles
+                      the batch
+``state_dict``        everything a resumed run needs (kept in the checkpoint)
+
+A non-finite gradient or curvature is refused with :class:`FloatingPointError`: the loop reports
+it as the job's failure instead of writing NaN parameters.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import ClassVar
+
+import numpy as np
+
+
+class ParameterOptimizer(ABC):
+    """Base class of the update rules (see the module docstring for the interface)."""
+
+    name: ClassVar[str]
+    needs_curvature: ClassVar[bool] = False
+
+    @abstractmethod
+    def step(self, p: np.ndarray, gradient: np.ndarray, lower: np.ndarray, upper: np.ndarray, *, lr: float,
+             hessian: np.ndarray | None = None) -> np.ndarray:
+        """The next parameters ``(P,)``, within ``[lower, upper]``; ``lr`` is this iteration's
+        learning rate (the job's schedule)."""
+
+    def noise_dominated(self) -> bool:
+        return False
+
+    def describe(self) -> dict:
+        """What the plan and the records show of the optimizer's own state."""
+        return {}
+
+    @abstractmethod
+    def state_dict(self) -> dict:
+        """Plain data (lists, floats) for the checkpoint."""
+
+    @abstractmethod
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`'s data."""
+
+
+def check_finite(gradient: np.ndarray, hessian: np.ndarray | None = None) -> None:
+    """Raise :class:`FloatingPointError` if the gradient or the curvature is not finite."""
+    if not np.all(np.isfinite(gradient)):
+        raise FloatingPointError(f"non-finite parameter gradient {np.asarray(gradient).tolist()}")
+    if hessian is not None and not np.all(np.isfinite(hessian)):
+        raise FloatingPointError("non-finite Gauss-Newton curvature")

@@ -1,0 +1,142 @@
+"""The recipe a run follows: method, optimizer, Jacobian source, views per iteration, samples and
+path depth, each with the reason a user reads in ``plan.json``.
+
+A job may leave every choice to the product (the defaults: ``method``, ``optimizer`` and
+``views_per_iteration`` ``"auto"``). No trial is run before the first iteration: the choices
+below are made from what the scene and the job show (the effect plan, the losses, the number of
+views), and the run's own iterations take the rest (the batch grows when the steps turn
+noise-dominated, :func:`grow_batch`). Every decision, at the start or on the way, is a
+:class:`Decision` in the plan.
+
+What the rules rest on (``bench/results/mitsuba-loop.md``, ``bench/results/regime-*.md``):
+
+* **prb with Russian roulette** gives an unbiased gradient at the price of one render; with 1
+  spp and one view per iteration it is the fastest hand-written Mitsuba loop in every scene
+  measured, so it is the gradient of ``auto``.
+* **Levenberg-Marquardt** reaches the answer in a few steps where Adam is limited to the
+  learning rate per step, when its Jacobian is cheap: a forward-mode render per group of
+  scalars that change distinct RGB channels. ``auto`` takes it when the loss is ``l2`` and
+  at most :data:`MAX_JACOBIAN_RENDERS` renders per view measure the Jacobian; otherwise Adam.
+* **One view per iteration at 1 spp**, the batch doubled by the run itself when the steps keep
+  reversing (noise-dominated): views while there are more, then samples per
+  pixel; kept as it is under Adam, whose moments average the noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+from schemas.job import JobSpec
+from schemas.methods import AUTO, Method
+from services.solver.estimators.methods.prb import channel_groups
+from services.solver.estimators.problem import Problem
+from services.solver.estimators.render import PathDepth
+
+#: ``auto`` takes Levenberg-Marquardt when its Jacobian costs at most this many forward renders per view.
+MAX_JACOBIAN_RENDERS = 4
+#: A growing batch stops at this many times its first size (views x samples per pixel): past it, an
+#: iteration would cost more than the averaging over iterations that the learning rate's decay gives.
+MAX_GROWTH = 16
+
+
+@dataclass(frozen=True)
+class Decision:
+    what: str           # "method", "optimizer", "jacobian", "views", "spp", "depth", ...
+    value: str | int
+    reason: str
+    iteration: int | None = None  # None: decided before the first iteration
+
+
+@dataclass
+class Recipe:
+    method: str
+    optimizer: str
+    jacobian: str              # "method" | "differential-field"
+    views: int                 # views per iteration now
+    adaptive_views: bool       # the batch may grow (views_per_iteration "auto"): views, then spp
+    depth: PathDepth
+    spp: int                   # samples per pixel of the candidate now
+    gradient_spp: int          # samples per pixel of the gradient and the Jacobian now
+    first_size: int = 1        # views x gradient spp of the first batch
+    decisions: list[Decision] = field(default_factory=list)
+
+    def decide(self, what: str, value, reason: str, iteration: int | None = None) -> Decision:
+        decision = Decision(what, value, reason, iteration)
+        self.decisions.append(decision)
+        return decision
+
+    def to_json(self) -> dict:
+        return {"method": self.method, "optimizer": self.optimizer, "jacobian": self.jacobian, "views": self.views,
+                "spp": self.spp, "gradient_spp": self.gradient_spp, "adaptive_views": self.adaptive_views,
+                "depth": self.depth.describe(),
+                "decisions": [asdict(d) for d in self.decisions]}
+
+
+def jacobian_renders(problem: Problem) -> int:
+    """Forward-mode renders per view that measure ``prb``'s Jacobian (one per channel group)."""
+    return len(channel_groups(list(problem.layout.channels)))
+
+
+def depth_of(spec: JobSpec) -> PathDepth:
+    return PathDepth(spec.render.max_depth, spec.render.rr_depth)
+
+
+def choose_recipe(spec: JobSpec, problem: Problem, sensors: int) -> Recipe:
+    """The recipe before the first iteration (module docstring). Pure: the scene enters only
+    through the effect plan already applied to ``problem``."""
+    depth = depth_of(spec)
+    method = str(Method.PRB) if spec.method == AUTO else str(spec.method)
+    views = 1 if spec.views_per_iteration == "auto" else min(int(spec.views_per_iteration), sensors)
+    recipe = Recipe(method, "adam", spec.jacobian, views, spec.views_per_iteration == "auto", depth,
+                    spec.render.spp, spec.render.gradient_spp, views * spec.render.gradient_spp)
+    if spec.method == AUTO:
+        recipe.decide("method", method, "prb: an unbiased gradient for one adjoint render per view, whatever the "
+                                        "number of scalars; no field to train before the first step")
+    recipe.decide("depth", depth.describe(),
+                  "the job's render.max_depth / rr_depth" if spec.render.max_depth or spec.render.rr_depth != 5
+                  else "Mitsuba's default: every bounce, so photographs and candidates agree (no depth bias)")
+    if spec.optimizer != "auto":
+        recipe.optimizer = spec.optimizer
+    elif spec.loss != "l2":
+        recipe.decide("optimizer", "adam", f"the {spec.loss} loss has no Gauss-Newton model")
+    elif problem.layout.active == 0:
+        recipe.decide("optimizer", "adam", "no scalar changes the image: nothing to model")
+    else:
+        renders = jacobian_renders(problem) if method == Method.PRB and spec.jacobian == "method" else 0
+        if renders <= MAX_JACOBIAN_RENDERS:
+            recipe.optimizer = "levenberg-marquardt"
+            cost = (f"{renders} forward render(s) per view measure the Jacobian ({problem.layout.active} scalars in "
+                    f"{renders} channel group(s))" if renders else "the Jacobian is a field query")
+            recipe.decide("optimizer", recipe.optimizer, f"{cost}: Gauss-Newton steps in a trust region reach the "
+                                                         f"answer in fewer iterations than Adam's learning-rate-"
+                                                         f"limited steps")
+        else:
+            recipe.decide("optimizer", "adam", f"the Jacobian would cost {renders} forward renders per view "
+                                               f"(more than {MAX_JACOBIAN_RENDERS}): Adam on the adjoint gradient")
+    if spec.views_per_iteration == "auto":
+        grows = recipe.optimizer != "adam"
+        start = (f"one of the {sensors} views per iteration (the fastest hand-written loop's batch too)"
+                 if sensors > 1 else "the job's one view")
+        recipe.decide("views", views, start + ("; the batch doubles whenever the steps turn noise-dominated: views "
+                                               f"first, then samples per pixel (up to {MAX_GROWTH}x)"
+                                               if grows else "; Adam's moments average the noise"))
+        recipe.adaptive_views = grows
+    if spec.render.spp == 1 and spec.render.gradient_spp == 1:
+        recipe.decide("spp", 1, "1 sample per pixel: the fastest to a given error in every scene measured; the "
+                                "optimizer averages the noise across iterations")
+    return recipe
+
+
+def grow_batch(recipe: Recipe, sensors: int, iteration: int) -> Decision | None:
+    """Double the batch (the run's steps turned noise-dominated): the views per iteration while
+    there are more, then the samples per pixel, up to :data:`MAX_GROWTH` times the first batch;
+    None when it cannot grow."""
+    if not recipe.adaptive_views or recipe.views * recipe.gradient_spp >= MAX_GROWTH * recipe.first_size:
+        return None
+    why = "the steps keep reversing (noise-dominated): "
+    if recipe.views < sensors:
+        recipe.views = min(2 * recipe.views, sensors)
+        return recipe.decide("views", recipe.views, why + "twice the views per iteration", iteration)
+    recipe.spp, recipe.gradient_spp = 2 * recipe.spp, 2 * recipe.gradient_spp
+    return recipe.decide("spp", recipe.spp, why + "every view is in the batch: twice the samples per pixel",
+                         iteration)

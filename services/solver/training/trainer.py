@@ -1,0 +1,294 @@
+"""Training of ``L_phi`` and ``dL_theta`` by residual minimisation (paper Sec. 4, 6.1).
+
+Each step takes one Adam step on each field:
+
+    loss_phi   = ||r_phi||²    (Eq. 5, 8)      trains L_phi
+    loss_theta = ||r_theta||²  (Eq. 6, 7, 8)   trains dL_theta, with sg(L_phi)
+
+With ``pool.enabled`` (default) both residuals are estimated on one batch of a
+:class:`~services.solver.training.pool.ResidualPool` (points, rays, hits and encoding lookups reused
+across steps) and ``L_phi(x')`` is evaluated once for both right-hand sides; otherwise each step
+draws two fresh, independent batches, one per residual (the paper's Sec. 6.1). The fixed point is
+the same: ``L_phi`` is a constant of ``r_theta`` either way.
+
+With ``semi_gradient`` (default) the right-hand side is a fixed target within a step, as in
+fitted value iteration; otherwise the gradient flows through both sides (Neural Radiosity). The
+two residual norms are the accuracy proxy reported per iteration.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+
+import torch
+
+from schemas.solver import TrainingConfig
+from services.solver.estimators.methods.base import Fields, GradientMethod
+from services.solver.estimators.problem import Problem
+from services.solver.fields.averaging import WeightAverage
+from services.solver.fields.field import NeuralField
+from services.solver.seeds import derive_seed
+from services.solver.training.pool import ResidualPool
+from services.solver.training.residuals import (
+    ResidualBatch,
+    debiased_residual,
+    differential_rhs,
+    differential_rhs_samples,
+    draw_batch,
+    incident_radiance,
+    radiance_rhs_samples,
+    residual_loss,
+)
+from services.solver.training.schedule import StepSchedule
+from services.solver.training.steps import StepStats
+
+log = logging.getLogger(__name__)
+
+
+def _stats(radiance: tuple | None, differential: tuple | None, seconds: float, radiance_seconds: float,
+           differential_seconds: float, batch: tuple[int, int] | None = None) -> StepStats:
+    """StepStats from the ``(loss, residual)`` pairs of the two fields (None: not trained)."""
+    return StepStats(radiance[0] if radiance else None, differential[0] if differential else None, seconds,
+                     radiance_seconds, differential_seconds, radiance[1] if radiance else None,
+                     differential[1] if differential else None, batch)
+
+
+def _channel_scale(values: torch.Tensor, floor_ratio: float = 1e-2) -> torch.Tensor:
+    """Per-channel RMS of ``values`` ``(N, C)``, floored at a fraction of the largest channel."""
+    rms = values.square().mean(0).sqrt()
+    floor = max(float(rms.max()) * floor_ratio, 1e-12)
+    return rms.clamp_min(floor)
+
+
+class FieldTrainer:
+    """Owns the fields of one problem, their optimizers, and the training step counter."""
+
+    def __init__(self, problem: Problem, config: TrainingConfig, *, radiance: bool, differential: bool, seed: int):
+        self.problem = problem
+        self.config = config
+        self.seed = seed
+        self.steps = 0
+        lo, hi = problem.bbox
+        if differential and problem.layout.outputs == 0:
+            raise ValueError("dL_theta has no output: no active scalar (see the effect plan)")
+        # each field is initialised from its own seed: training one does not change the other
+        self.radiance = self._field(config.radiance, 3, lo, hi, "radiance") if radiance else None
+        self.differential = (self._field(config.differential, problem.layout.outputs, lo, hi, "differential")
+                             if differential else None)
+        self.optimizers = {
+            name: torch.optim.Adam(field.parameters(), lr=config.learning_rate, eps=1e-10, fused=True)
+            for name, field in self.fields().items()
+        }
+        self.averages = ({name: WeightAverage(field, config.weight_averaging) for name, field in self.fields().items()}
+                         if config.weight_averaging is not None else {})
+        self.calibrated = {name: False for name in self.optimizers}
+        self.last = StepStats(None, None, 0.0)
+        self.schedule = StepSchedule(config)
+        self.pool = None
+        if config.pool.enabled:
+            self.pool = ResidualPool(problem, config.residual_points, config.incident_samples,
+                                     chunks=config.pool.chunks, reuse=config.pool.reuse,
+                                     derivatives=self.differential is not None, fields=list(self.fields().values()),
+                                     seed=seed, camera_fraction=config.camera_points)
+
+    def _field(self, config, channels: int, lo, hi, name: str) -> NeuralField:
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(derive_seed(self.seed, "init", name))
+            return NeuralField(config, channels, lo, hi)
+
+    def fields(self) -> dict[str, NeuralField]:
+        """The fields being trained (live weights)."""
+        return {name: f for name, f in (("radiance", self.radiance), ("differential", self.differential)) if f is not None}
+
+    def queried(self) -> Fields:
+        """The fields that gradients and images read: the weight averages (``weight_averaging``)
+        or, without them, the live fields."""
+        if not self.averages:
+            return Fields(self.radiance, self.differential)
+        pick = {name: average.average for name, average in self.averages.items()}
+        return Fields(pick.get("radiance"), pick.get("differential"))
+
+    def _update_averages(self) -> None:
+        if self.averages:
+            values = self.problem.parameters.values()
+            for average in self.averages.values():
+                average.update(values)
+
+    # ------------------------------------------------------------------ steps
+
+    def _learning_rate(self) -> float:
+        decay = self.config.learning_rate_decay ** self.steps
+        return self.config.learning_rate * max(decay, 0.1)
+
+    def _batch(self, kind: int, derivatives: bool) -> ResidualBatch:
+        seed = derive_seed(self.seed, "train", self.steps, kind)
+        return draw_batch(self.problem, self.config.residual_points, self.config.incident_samples, seed, derivatives,
+                          self.config.camera_points)
+
+    def _calibrate(self, name: str, field: NeuralField, direct: torch.Tensor) -> None:
+        with torch.no_grad():
+            field.output_scale.copy_(_channel_scale(direct.reshape(direct.shape[0], -1)))
+        self.calibrated[name] = True
+        log.debug("%s output scale %s", name, field.output_scale.tolist())
+
+    def _step_field(self, name: str, field: NeuralField, lhs_fn, rhs_fn, batch: ResidualBatch) -> tuple[float, float]:
+        """One Adam step on ``field``; ``rhs_fn`` gives the right-hand side's ``M`` terms
+        ``(N, M, C)``. Returns the training loss and the debiased residual (nan when skipped)."""
+        optimizer = self.optimizers[name]
+        for group in optimizer.param_groups:
+            group["lr"] = self._learning_rate()
+        with torch.set_grad_enabled(not self.config.semi_gradient):
+            rhs_samples = rhs_fn(batch)
+            rhs_samples = rhs_samples.reshape(rhs_samples.shape[0], rhs_samples.shape[1], -1)
+            rhs = rhs_samples.mean(1)
+        lhs = lhs_fn(batch)
+        lhs = lhs.reshape(lhs.shape[0], -1)
+        loss, clipped = residual_loss(lhs, rhs, batch.weight, field.output_scale, self.config.residual_clip)
+        self.problem.count_sanitized(f"{name}: residuals clipped", clipped)
+        with torch.no_grad():
+            residual = debiased_residual(lhs, rhs_samples, batch.weight, field.output_scale)
+        optimizer.zero_grad(set_to_none=True)
+        if not torch.isfinite(loss):
+            self.problem.count_sanitized(f"{name}: steps skipped (non-finite loss)", 1)
+            return float("nan"), float("nan")
+        loss.backward()
+        norm = torch.nn.utils.clip_grad_norm_(field.parameters(), self.config.max_grad_norm or float("inf"))
+        if not torch.isfinite(norm):
+            self.problem.count_sanitized(f"{name}: steps skipped (non-finite gradient)", 1)
+            optimizer.zero_grad(set_to_none=True)
+            return float("nan"), float("nan")
+        if self.config.max_grad_norm is not None and float(norm) > self.config.max_grad_norm:
+            self.problem.count_sanitized(f"{name}: gradient norms clipped", 1)
+        optimizer.step()
+        return float(loss.detach()), residual
+
+    def step(self) -> StepStats:
+        """One Adam step on each field (Sec. 6.1)."""
+        if self.pool is not None:
+            return self._pool_step()
+        start = time.perf_counter()
+        radiance_step = differential = None
+        if self.radiance is not None:
+            batch = self._batch(0, derivatives=False)
+            if not self.calibrated["radiance"]:
+                self._calibrate("radiance", self.radiance, batch.emitted.mean(1))
+            radiance_step = self._step_field("radiance", self.radiance, lambda b: self.radiance(b.points),
+                                             lambda b: radiance_rhs_samples(b, self.radiance), batch)
+        middle = time.perf_counter()
+        if self.differential is not None:
+            batch = self._batch(1, derivatives=True)
+            layout = self.problem.layout
+            if not self.calibrated["differential"]:
+                self._calibrate("differential", self.differential,
+                                layout.pack(differential_rhs(batch, self.radiance, None, layout)))
+            differential = self._step_field(
+                "differential", self.differential, lambda b: self.differential(b.points),
+                lambda b: layout.pack(differential_rhs_samples(b, self.radiance, self.differential, layout)), batch)
+        self.steps += 1
+        self._update_averages()
+        end = time.perf_counter()
+        self.last = _stats(radiance_step, differential, end - start, middle - start, end - middle)
+        return self.last
+
+    def _pool_step(self) -> StepStats:
+        """Both fields on one pooled batch; the fields at ``x'`` are evaluated once (no grad: the
+        semi-gradient right-hand sides), before either field's Adam step."""
+        assert self.pool is not None  # step() calls this only with a pool
+        start = time.perf_counter()
+        batch = self.pool.batch(self.steps)
+        layout, radiance, differential = self.problem.layout, self.radiance, self.differential
+        if radiance is not None and not self.calibrated["radiance"]:
+            self._calibrate("radiance", radiance, batch.emitted.mean(1))
+        if differential is not None and not self.calibrated["differential"]:
+            self._calibrate("differential", differential, layout.pack(differential_rhs(batch, radiance, None, layout)))
+        shared = self.config.semi_gradient
+        with torch.no_grad():
+            l_hit = incident_radiance(batch, radiance) if shared and radiance is not None else None
+            dl_hit = incident_radiance(batch, differential) if shared and differential is not None else None
+        radiance_step = diff = None
+        if radiance is not None:
+            radiance_step = self._step_field("radiance", radiance, lambda b: radiance(b.points),
+                                             lambda b: radiance_rhs_samples(b, radiance, l_hit), batch)
+        middle = time.perf_counter()
+        if differential is not None:
+            diff = self._step_field(
+                "differential", differential, lambda b: differential(b.points),
+                lambda b: layout.pack(differential_rhs_samples(b, radiance, differential, layout, l_hit, dl_hit)),
+                batch)
+        batch_id = self.pool.batch_id(self.steps)
+        self.steps += 1
+        self._update_averages()
+        end = time.perf_counter()
+        self.last = _stats(radiance_step, diff, end - start, middle - start, end - middle, batch_id)
+        return self.last
+
+    def train(self, steps: int, on_step: Callable[[StepStats], None] | None = None) -> list[StepStats]:
+        """``steps`` steps; ``on_step`` sees each one's statistics (and may raise to stop)."""
+        out = []
+        for _ in range(steps):
+            out.append(self.step())
+            if on_step is not None:
+                on_step(out[-1])
+        return out
+
+    def train_iteration(self, on_step: Callable[[StepStats], None] | None = None) -> list[StepStats]:
+        """The training of one inverse-rendering iteration: the warm-up first, then fine-tuning,
+        fixed or adaptive (:class:`~services.solver.training.schedule.StepSchedule`)."""
+        return self.schedule.run(self, on_step)
+
+    def check_finite(self) -> None:
+        """Raise if a field's weights are no longer finite (the skip guards make this a bug, not
+        a state to continue from)."""
+        for name, f in self.fields().items():
+            if not all(torch.isfinite(p).all() for p in f.parameters()):
+                raise FloatingPointError(f"the weights of {'L_phi' if name == 'radiance' else 'dL_theta'} became "
+                                         f"non-finite after {self.steps} training steps")
+
+    # ------------------------------------------------------------- checkpoints
+
+    def state_dict(self) -> dict:
+        return {
+            "steps": self.steps,
+            "calibrated": dict(self.calibrated),
+            "fields": {name: f.state_dict() for name, f in self.fields().items()},
+            "optimizers": {name: o.state_dict() for name, o in self.optimizers.items()},
+            "schedule": self.schedule.state_dict(),
+            "averages": {name: a.state_dict() for name, a in self.averages.items()},
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.steps = int(state["steps"])
+        self.calibrated.update(state["calibrated"])
+        self.schedule.load_state_dict(state.get("schedule", {"warmed": self.steps > 0}))
+        for name, f in self.fields().items():
+            f.load_state_dict(state["fields"][name])
+            self.optimizers[name].load_state_dict(state["optimizers"][name])
+        saved = state.get("averages", {})
+        for name, average in self.averages.items():
+            if name in saved:
+                average.load_state_dict(saved[name])
+            else:  # a checkpoint from before weight averaging: start the average at the live weights
+                average.average.load_state_dict(self.fields()[name].state_dict())
+
+
+def trainer_for(problem: Problem, method: GradientMethod, config: TrainingConfig, seed: int, *,
+                radiance: bool = False) -> FieldTrainer | None:
+    """The trainer of exactly the fields ``method`` uses (none for ``direct`` and ``prb``).
+
+    ``L_phi`` is trained when the method queries it, when ``dL_theta`` is trained and its
+    residual contains ``∫ (∂f) L_phi`` (the plan decides; without a plan: whenever ∂f is attached),
+    or when asked (``radiance``: the candidate image comes from it).
+    """
+    differential = method.needs_differential
+    for_residual = problem.plan.radiance_field.value if problem.plan is not None else problem.attach_bsdf
+    radiance = radiance or method.needs_radiance or (differential and bool(for_residual))
+    if not (radiance or differential):
+        return None
+    return FieldTrainer(problem, config, radiance=radiance, differential=differential, seed=seed)
+
+
+def fields_of(trainer: FieldTrainer | None) -> Fields:
+    """The fields a method queries (:meth:`FieldTrainer.queried`; none without a trainer)."""
+    return Fields() if trainer is None else trainer.queried()

@@ -1,0 +1,71 @@
+"""The recipe of a run (``services/solver/optimize/recipe.py``): what ``auto`` chooses before the
+first iteration and why, what a job's own choices leave alone, and how the batch grows."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+
+from schemas.job import JobSpec
+from services.solver.estimators.layout import DerivativeLayout
+from services.solver.optimize.recipe import MAX_GROWTH, MAX_JACOBIAN_RENDERS, choose_recipe, grow_batch
+
+
+def _spec(**extra) -> JobSpec:
+    job = {"scene": {"builtin": "room-open-8"},
+           "parameters": [{"key": "walls.reflectance.value"}, {"key": "ball.reflectance.value"}],
+           "targets": {"synthetic": {"values": {"walls.reflectance.value": 0.8, "ball.reflectance.value": 0.3}}}}
+    return JobSpec.model_validate({**job, **extra})
+
+
+def _problem(sizes):
+    return SimpleNamespace(layout=DerivativeLayout.by_component(sizes))
+
+
+def test_the_default_job_gets_prb_levenberg_marquardt_and_one_view_with_reasons():
+    recipe = choose_recipe(_spec(), _problem([3, 3]), sensors=8)
+    assert (recipe.method, recipe.optimizer, recipe.jacobian, recipe.views, recipe.spp) == (
+        "prb", "levenberg-marquardt", "method", 1, 1)
+    assert recipe.adaptive_views and recipe.depth.unbiased
+    said = {d.what: d for d in recipe.decisions}
+    assert set(said) == {"method", "optimizer", "views", "spp", "depth"}
+    assert "2 forward render(s) per view" in said["optimizer"].reason           # 6 scalars, 2 channel groups
+    assert all(d.iteration is None and d.reason for d in recipe.decisions)     # decided before iteration 0
+    assert recipe.to_json()["decisions"][0]["what"] == "method"
+
+
+def test_auto_takes_adam_when_the_jacobian_is_dear_or_there_is_no_model():
+    many = choose_recipe(_spec(), _problem([1] * (MAX_JACOBIAN_RENDERS + 1)), sensors=8)
+    assert many.optimizer == "adam" and "forward renders per view" in many.decisions[-3].reason
+    assert not many.adaptive_views                                              # Adam averages the noise itself
+    l1 = choose_recipe(_spec(loss="l1"), _problem([3, 3]), sensors=8)
+    assert l1.optimizer == "adam" and any("l1 loss" in d.reason for d in l1.decisions)
+
+
+def test_the_jobs_own_choices_are_kept_and_not_explained_as_auto():
+    recipe = choose_recipe(_spec(method="ndrf-lhs", optimizer="adam", views_per_iteration=2), _problem([3, 3]),
+                           sensors=8)
+    assert (recipe.method, recipe.optimizer, recipe.views, recipe.adaptive_views) == ("ndrf-lhs", "adam", 2, False)
+    assert {d.what for d in recipe.decisions} <= {"depth", "spp"}
+    assert choose_recipe(_spec(views_per_iteration=20), _problem([3, 3]), sensors=8).views == 8
+
+
+def test_the_batch_grows_views_first_then_samples_and_stops():
+    recipe = choose_recipe(_spec(), _problem([3, 3]), sensors=4)
+    grown = [grow_batch(recipe, 4, k) for k in range(10)]
+    sizes = [(d.what, d.value) for d in grown if d is not None]
+    assert sizes == [("views", 2), ("views", 4), ("spp", 2), ("spp", 4)]      # 4 views x 4 spp = 16 x the first
+    assert recipe.views * recipe.gradient_spp == MAX_GROWTH
+    assert all(d.iteration is not None for d in recipe.decisions if d.what in ("views", "spp") and d.value != 1)
+    fixed = choose_recipe(_spec(optimizer="adam"), _problem([3, 3]), sensors=4)
+    assert grow_batch(fixed, 4, 0) is None
+
+
+def test_a_truncated_depth_is_said_and_no_roulette_needs_a_depth():
+    from pydantic import ValidationError
+
+    recipe = choose_recipe(_spec(render={"max_depth": 12}), _problem([3, 3]), sensors=8)
+    assert not recipe.depth.unbiased and "biased" in recipe.depth.describe()
+    with pytest.raises(ValidationError, match="needs a finite render.max_depth"):
+        _spec(render={"rr_depth": None})

@@ -1,0 +1,48 @@
+"""The default recipe through the loop on a multi-view scene: batches of views, the decisions it
+takes on the way, and a resume that continues exactly where the run stopped (the optimizer's trust
+radius, the stream of views, the batch size and the remembered Jacobians are all checkpointed)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+
+def _job(**extra) -> dict:
+    job = {"scene": {"builtin": "room-open-8"},
+           "parameters": [{"key": "walls.reflectance.value", "init": [0.5, 0.5, 0.5]},
+                          {"key": "ball.reflectance.value", "init": [0.5, 0.5, 0.5]}],
+           "targets": {"synthetic": {"values": {"walls.reflectance.value": [0.85, 0.85, 0.85],
+                                                "ball.reflectance.value": [0.8, 0.2, 0.1]}, "spp": 16}},
+           "render": {"resolution": [16, 16]}, "iterations": 12, "checkpoint_every": 2, "seed": 5}
+    return {**job, **extra}
+
+
+def test_the_default_recipe_batches_views_and_resumes_exactly(mi, tmp_path):
+    from tests.support.jobs import run_job as _run
+
+    reference = _run(_job(), tmp_path / "uninterrupted")
+    assert reference["status"] == "succeeded"
+    records = [json.loads((tmp_path / "uninterrupted" / "iterations" / f"{k:06d}" / "record.json").read_text())
+               for k in range(12)]
+    first_pass = [r["views"] for r in records[:8]]
+    assert all(len(v) == 1 for v in first_pass) and sorted(v[0] for v in first_pass) == list(range(8))
+    plan = json.loads((tmp_path / "uninterrupted" / "plan.json").read_text())
+    assert plan["recipe"]["optimizer"] == "levenberg-marquardt"
+    assert np.max(np.abs(np.asarray(reference["final"]) - np.asarray(reference["target"]))) < \
+        np.max(np.abs(np.asarray(reference["init"]) - np.asarray(reference["target"])))
+
+    calls = {"n": 0}
+
+    def stop_after_a_while():
+        calls["n"] += 1
+        return "interrupted" if calls["n"] > 7 else None   # polled once per iteration (no fields to train)
+
+    out = tmp_path / "interrupted"
+    assert _run(_job(), out, should_stop=stop_after_a_while)["status"] == "interrupted"
+    resumed = _run(_job(), out, resume=True)
+    events = [json.loads(line) for line in (out / "events.jsonl").read_text().splitlines()]
+    assert [e["iteration"] for e in events if e["type"] == "resumed"][0] >= 4
+    assert resumed["status"] == "succeeded"
+    np.testing.assert_allclose(resumed["final"], reference["final"], rtol=1e-6, atol=1e-9)
