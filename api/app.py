@@ -15,9 +15,9 @@ from contextlib import asynccontextmanager
 from importlib.metadata import version
 
 from fastapi import FastAPI
-from starlette.types import ASGIApp, Receive, Scope, Send
 
-from api import problems
+from api import accesslog, problems
+from api.guard import Guard
 from api.routes import artifacts, events, experiments, health, jobs, scenes
 from api.routes.health import Snapshot
 from api.streams import StreamHub
@@ -25,50 +25,6 @@ from services.runtime import build_runtime
 from services.settings import Settings, get_settings
 
 log = logging.getLogger(__name__)
-
-
-class BodyLimit:
-    """Refuse request bodies over ``limit`` bytes with a 413 problem, without reading them whole."""
-
-    def __init__(self, app: ASGIApp, limit: int):
-        self.app, self.limit = app, limit
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            return await self.app(scope, receive, send)
-        declared = dict(scope.get("headers") or []).get(b"content-length")
-        if declared is not None and declared.isdigit() and int(declared) > self.limit:
-            return await self._refuse(scope, send)
-        seen = 0
-
-        async def counted():
-            nonlocal seen
-            message = await receive()
-            if message["type"] == "http.request":
-                seen += len(message.get("body", b""))
-                if seen > self.limit:
-                    raise _TooLarge()
-            return message
-
-        try:
-            await self.app(scope, counted, send)
-        except _TooLarge:
-            await self._refuse(scope, send)
-
-    async def _refuse(self, scope: Scope, send: Send) -> None:
-        import json
-
-        body = json.dumps({"type": "/problems/too-large", "title": "Payload too large", "status": 413,
-                           "detail": f"the request body exceeds the limit of {self.limit} bytes (NDRF_MAX_UPLOAD_BYTES)",
-                           "instance": scope.get("path")}).encode()
-        await send({"type": "http.response.start", "status": 413,
-                    "headers": [(b"content-type", b"application/problem+json"),
-                                (b"content-length", str(len(body)).encode())]})
-        await send({"type": "http.response.body", "body": body})
-
-
-class _TooLarge(Exception):
-    pass
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -105,12 +61,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version=version("ndrf"),  # pyproject.toml's, as installed
         summary="Recover scene parameters from photographs with Neural Differential Radiance Fields.",
         lifespan=lifespan,
+        redirect_slashes=False,   # a redirect would echo the request's Host header (issue 27)
     )
+    accesslog.install()
     problems.install(app)
     for module in (jobs, artifacts, events, experiments, scenes, health):
         app.include_router(module.router)
     from api.dashboard import mount
 
     mount(app)
-    app.add_middleware(BodyLimit, limit=settings.limits.upload_bytes)
+    app.add_middleware(Guard, settings=settings)
     return app

@@ -50,9 +50,13 @@ def _match(token: str, keys: list[str]) -> bool:
 
 def caller_of(request: Request, settings: Settings) -> Caller | None:
     """The caller a request's bearer key names (None: no valid key)."""
+    return caller_for_key(_bearer(request), settings)
+
+
+def caller_for_key(token: str | None, settings: Settings) -> Caller | None:
+    """The caller a bearer key names (None: no valid key); anonymous without keys configured."""
     if not settings.auth:
         return Caller(ANONYMOUS, admin=True)
-    token = _bearer(request)
     if token is None:
         return None
     if _match(token, settings.admin_keys):
@@ -77,8 +81,15 @@ def reader_of(request: Request, settings: Settings, resource_id: str) -> Caller:
         return caller
     token = request.query_params.get("token")
     if request.method == "GET" and token and tokens.verify(settings.signing_secret(), token, resource_id):
+        request.state.read_token = True   # answers never mint a new token for it (tokens must expire)
         return Caller(f"token:{resource_id}", admin=True)
     raise _unauthorized()
+
+
+def may_mint_token(request: Request) -> bool:
+    """Whether an answer to ``request`` may carry a fresh read token: not when the request itself was
+    authenticated by a read token (a token that renews itself never expires)."""
+    return not getattr(request.state, "read_token", False)
 
 
 def require_reader(request: Request, settings: SettingsDep, job_id: str) -> Caller:

@@ -37,7 +37,10 @@ class ProblemDetails(BaseModel):
     status: int = Field(description="HTTP status code.")
     detail: str | None = Field(None, description="Explanation specific to this occurrence.")
     instance: str | None = Field(None, description="The request path.")
-    errors: list[FieldError] | None = Field(None, description="Offending fields (validation problems).")
+    errors: list[FieldError] | None = Field(None, description="Offending fields (validation problems): at most "
+                                                                "NDRF_MAX_VALIDATION_ERRORS of them.")
+    more_errors: int | None = Field(None, description="Validation errors found but not listed in `errors` "
+                                                      "(the list is capped).")
 
 
 class ProblemError(Exception):
@@ -51,22 +54,36 @@ class ProblemError(Exception):
 
 
 def problem_response(request: Request, status: int, title: str, detail: str | None = None, *,
-                     slug: str | None = None, errors=None, headers=None) -> JSONResponse:
+                     slug: str | None = None, errors=None, headers=None, more_errors: int | None = None) -> JSONResponse:
     body = ProblemDetails(type=f"/problems/{slug}" if slug else "about:blank", title=title, status=status, detail=detail,
-                   instance=request.url.path,
-                   errors=[FieldError(field=f, message=m) for f, m in errors] if errors else None)
+                          instance=request.url.path, more_errors=more_errors or None,
+                          errors=[FieldError(field=f, message=m) for f, m in errors] if errors else None)
     return JSONResponse(body.model_dump(exclude_none=True), status_code=status, media_type=PROBLEM_JSON,
                         headers=headers)
 
 
-def _validation_errors(exc: RequestValidationError) -> list[tuple[str, str]]:
-    out = []
-    for err in exc.errors():
+def validation_errors(exc: RequestValidationError, cap: int) -> tuple[list[tuple[str, str]], int]:
+    """The first ``cap`` distinct ``(field, message)`` of a validation failure, and how many errors
+    were left out. The work is bounded by ``cap`` (plus duplicates), not by the number of errors:
+    a body of a million bad items is reported as its first ``cap`` and a count."""
+    errors = exc.errors()
+    total = getattr(exc, "total", len(errors))
+    out: dict[tuple[str, str], None] = {}
+    seen = 0
+    for err in errors:
+        if len(out) >= cap:
+            break
+        seen += 1
         loc = tuple(err.get("loc", ()))
         if loc and loc[0] in ("body", "query", "path", "header"):
             loc = loc[1:] if loc[0] == "body" else loc
-        out.append((field_path(loc), err.get("msg", "invalid")))
-    return list(dict.fromkeys(out))
+        out[(field_path(loc), err.get("msg", "invalid"))] = None
+    return list(out), max(0, total - seen)
+
+
+def _cap(request: Request) -> int:
+    runtime = getattr(request.app.state, "runtime", None)
+    return runtime.settings.limits.validation_errors if runtime is not None else 20
 
 
 def install(app: FastAPI) -> None:
@@ -77,9 +94,12 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError):
-        errors = _validation_errors(exc)
+        errors, more = validation_errors(exc, _cap(request))
         detail = "; ".join(f"{f}: {m}" for f, m in errors[:5])
-        return problem_response(request, 422, "Invalid request", detail, slug="invalid-request", errors=errors)
+        if more:
+            detail += f" (and {more} more error(s) not listed)"
+        return problem_response(request, 422, "Invalid request", detail, slug="invalid-request", errors=errors,
+                                more_errors=more)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):

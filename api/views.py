@@ -15,7 +15,8 @@ METRICS = ("loss", "residual_radiance", "residual_differential", "seconds", "san
            "optimizer", "learning_rate")
 
 
-def job_public(record: JobRecord, files: JobFiles, settings: Settings) -> JobPublic:
+def job_public(record: JobRecord, files: JobFiles, settings: Settings, *, mint_token: bool = True) -> JobPublic:
+    """The job as the API shows it; ``mint_token`` false (a token-authenticated request): no new read token."""
     plan = files.read(JobFiles.PLAN) or {}
     labels = plan.get("scalars") or []
     latest = files.iteration_record(record.iteration) if record.iteration is not None else None
@@ -30,7 +31,8 @@ def job_public(record: JobRecord, files: JobFiles, settings: Settings) -> JobPub
             per_iteration = [sum(r["seconds"].values()) for r in recent if r]
             if per_iteration:
                 eta = float(np.mean(per_iteration)) * max(record.iterations - record.iteration - 1, 0)
-    token = tokens.sign(settings.signing_secret(), record.id, settings.token_seconds) if settings.auth else None
+    token = (tokens.sign(settings.signing_secret(), record.id, settings.token_seconds)
+             if settings.auth and mint_token else None)
     return JobPublic(
         id=record.id, name=record.name, status=record.status, method=record.method, scene=record.scene,
         created=record.created, updated=record.updated, iteration=record.iteration, iterations=record.iterations,

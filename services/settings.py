@@ -48,6 +48,23 @@ class Limits(BaseSettings):
     streams_per_key: int = Field(64, ge=1, description="Most open event streams of one API key.")
     experiment_runs: int = Field(200, ge=1, description="Most runs of one experiment (grid x samples x seeds, "
                                                         "appends included).")
+    # JSON bodies are checked by a scan of the raw bytes before they are parsed (api.bodies): the
+    # work and memory of parsing and validating a body are bounded by these, not by its size.
+    json_depth: int = Field(32, ge=4, le=1000, description="Deepest nesting of arrays and objects in a JSON body "
+                                                           "(guards the parser's recursion and per-level work).")
+    json_keys: int = Field(1000, ge=16, le=1_000_000, description="Most keys of one JSON object (guards against "
+                                                                  "objects of millions of unknown keys, each one a "
+                                                                  "validation error).")
+    json_items: int = Field(10_000, ge=16, le=10_000_000, description="Most items of one JSON array (guards "
+                                                                      "against lists of millions of values, each "
+                                                                      "one parsed, validated and reported).")
+    json_tokens: int = Field(200_000, ge=1000, le=100_000_000,
+                             description="Most strings, containers and separators in one JSON body (bounds the "
+                                         "objects a body can make the API build, whatever its size: uploads are "
+                                         "few long base64 strings).")
+    validation_errors: int = Field(20, ge=1, le=1000, description="Validation errors listed in a 422 response "
+                                                                  "(the rest are counted, not listed): bounds the "
+                                                                  "size of an error response.")
 
 
 class Settings(BaseSettings):
@@ -81,7 +98,22 @@ class Settings(BaseSettings):
     token_secret: str = Field("", description="Secret of the short-lived read tokens (default: derived from "
                                               "the API keys, so every API process agrees).")
     token_seconds: int = Field(3600, ge=10, le=7 * 86400, description="Lifetime of a read token.")
-    metrics_public: bool = Field(True, description="Serve /metrics without a key (false: admin keys only).")
+    metrics_public: bool = Field(False, description="Serve /metrics without a key. Off by default: with API keys "
+                                                    "set, /metrics needs an admin key (it shows every tenant's "
+                                                    "job counts, the store size and the queue depth).")
+    body_read_seconds: float = Field(60.0, ge=1.0, le=3600.0,
+                                     description="Time allowed to receive a request's whole body once its headers "
+                                                 "are in (a 408 after): guards against slow bodies holding a "
+                                                 "connection. uvicorn has no timeout on reading headers.")
+    keep_alive_seconds: float = Field(5.0, ge=1.0, le=300.0, description="An idle keep-alive connection is closed "
+                                                                         "after this long (uvicorn "
+                                                                         "timeout_keep_alive).")
+    max_connections: int = Field(1000, ge=1, le=100_000,
+                                 description="Most concurrent connections and requests of one API process; beyond "
+                                             "it new requests get a 503 (uvicorn limit_concurrency).")
+    max_header_bytes: int = Field(64 << 10, ge=4096, le=16 << 20,
+                                  description="Largest request line and headers (uvicorn's h11 "
+                                              "h11_max_incomplete_event_size): a larger header section is a 400.")
     retention_days: float | None = Field(None, gt=0, description="Delete finished jobs older than this many "
                                                                  "days (unset: keep everything).")
     lease_seconds: float = Field(30.0, ge=1.0, le=600.0,

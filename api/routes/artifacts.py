@@ -17,12 +17,13 @@ from fastapi import APIRouter, Query
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, RedirectResponse, Response, StreamingResponse
 
+from api.bodies import GuardedRoute
 from api.deps import ReaderDep, RuntimeDep, files_or_404
 from api.problems import ProblemDetails, ProblemError
 from schemas.records import IterationRecord
 from services.store.job import JobFiles
 
-router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["artifacts"],
+router = APIRouter(route_class=GuardedRoute, prefix="/v1/jobs/{job_id}", tags=["artifacts"],
                    responses={401: {"model": ProblemDetails}, 404: {"model": ProblemDetails}})
 
 Iteration = Annotated[int, PathParam(ge=0, le=10**7, description="0-based iteration index.")]

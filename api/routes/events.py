@@ -22,11 +22,12 @@ import anyio
 from fastapi import APIRouter, Header, Query, Request
 from fastapi.responses import StreamingResponse
 
+from api.bodies import GuardedRoute
 from api.deps import ReaderDep, RuntimeDep, files_or_404
 from api.problems import ProblemDetails, ProblemError
 from api.streams import END, StreamHub, finishes
 
-router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["events"],
+router = APIRouter(route_class=GuardedRoute, prefix="/v1/jobs/{job_id}", tags=["events"],
                    responses={401: {"model": ProblemDetails}, 404: {"model": ProblemDetails},
                               429: {"model": ProblemDetails}})
 

@@ -18,7 +18,8 @@ from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from fastapi.responses import PlainTextResponse, StreamingResponse
 
 from api import tokens
-from api.deps import RuntimeDep, SettingsDep, reader_of, require_caller
+from api.bodies import GuardedRoute
+from api.deps import RuntimeDep, SettingsDep, may_mint_token, reader_of, require_caller
 from api.problems import ProblemDetails, ProblemError
 from schemas.experiments import (
     Curves,
@@ -40,7 +41,7 @@ from services.runtime import Runtime
 from services.settings import Settings
 from services.store.job import JobFiles
 
-router = APIRouter(prefix="/v1/experiments", tags=["experiments"],
+router = APIRouter(prefix="/v1/experiments", tags=["experiments"], route_class=GuardedRoute,
                    responses={401: {"model": ProblemDetails, "description": "Missing or wrong API key."}})
 
 CallerDep = Annotated[Caller, Depends(require_caller)]
@@ -135,11 +136,12 @@ def list_experiments(runtime: RuntimeDep, settings: SettingsDep, caller: CallerD
 
 @router.get("/{exp_id}", response_model=ExperimentPublic, responses={404: {"model": ProblemDetails}},
             summary="An experiment")
-def get_experiment(exp_id: str, runtime: RuntimeDep, settings: SettingsDep, caller: ReaderDep):
+def get_experiment(exp_id: str, request: Request, runtime: RuntimeDep, settings: SettingsDep, caller: ReaderDep):
     """Status, counts by status, the best run by the objective so far, and the mean and spread
-    over seeds of every configuration."""
+    over seeds of every configuration. A request with ``?token=`` gets no fresh read token."""
     record = _record(runtime, exp_id, caller)
-    return runtime.experiments.public(record, read_token=_token(settings, exp_id))
+    token = _token(settings, exp_id) if may_mint_token(request) else None
+    return runtime.experiments.public(record, read_token=token)
 
 
 @router.get("/{exp_id}/runs", response_model=list[RunRow], responses={404: {"model": ProblemDetails}},

@@ -6,9 +6,10 @@ import logging
 from typing import Annotated
 
 import anyio
-from fastapi import APIRouter, Header, Query, Response
+from fastapi import APIRouter, Header, Query, Request, Response
 
-from api.deps import CallerDep, ReaderDep, RuntimeDep, SettingsDep, not_found, record_or_404
+from api.bodies import GuardedRoute
+from api.deps import CallerDep, ReaderDep, RuntimeDep, SettingsDep, may_mint_token, not_found, record_or_404
 from api.problems import ProblemDetails, ProblemError
 from api.views import job_public
 from schemas.errors import InvalidJob
@@ -21,7 +22,7 @@ from services.runtime import Runtime
 
 log = logging.getLogger(__name__)
 
-router = APIRouter(prefix="/v1/jobs", tags=["jobs"],
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=GuardedRoute,
                    responses={401: {"model": ProblemDetails, "description": "Missing or wrong API key."}})
 
 
@@ -92,10 +93,11 @@ def list_jobs(runtime: RuntimeDep, settings: SettingsDep, caller: CallerDep,
 
 
 @router.get("/{job_id}", response_model=JobPublic, responses={404: {"model": ProblemDetails}}, summary="A job")
-def get_job(job_id: str, runtime: RuntimeDep, settings: SettingsDep, caller: ReaderDep):
-    """Status, current iteration, latest parameters and metrics, plan, error."""
+def get_job(job_id: str, request: Request, runtime: RuntimeDep, settings: SettingsDep, caller: ReaderDep):
+    """Status, current iteration, latest parameters and metrics, plan, error. ``read_token`` is a fresh
+    read token only for a bearer key (a request with ``?token=`` gets none: tokens expire)."""
     record = record_or_404(runtime, job_id, caller)
-    return job_public(record, runtime.service.states.files(job_id), settings)
+    return job_public(record, runtime.service.states.files(job_id), settings, mint_token=may_mint_token(request))
 
 
 @router.post("/{job_id}/cancel", status_code=202, response_model=JobPublic,

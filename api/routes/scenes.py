@@ -7,6 +7,7 @@ import anyio
 from fastapi import APIRouter, Depends
 from pydantic import BaseModel, Field
 
+from api.bodies import GuardedRoute
 from api.deps import RuntimeDep, require_caller
 from api.problems import ProblemDetails, ProblemError
 from schemas.errors import InvalidJob
@@ -15,7 +16,7 @@ from schemas.scenes import BUILTIN_SCENES
 from services.jobs.preflight import describe_scene
 from services.runtime import Runtime
 
-router = APIRouter(prefix="/v1/scenes", tags=["scenes"], dependencies=[Depends(require_caller)],
+router = APIRouter(route_class=GuardedRoute, prefix="/v1/scenes", tags=["scenes"], dependencies=[Depends(require_caller)],
                    responses={401: {"model": ProblemDetails}})
 
 
