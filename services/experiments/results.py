@@ -16,6 +16,7 @@ import csv
 import io
 import json
 import math
+import re
 import statistics
 from collections.abc import Iterable
 from datetime import UTC, datetime
@@ -148,15 +149,30 @@ def results_csv(rows: list[RunRow]) -> str:
     head = ["run", "job", "status", "seed", *fields, "iterations", "iterations_planned", "final_loss",
             "final_parameter_error", "seconds", "wall_seconds", "time_to_error", "attempts", "error"]
     buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(head)
+    writer = csv.writer(buffer, lineterminator="\n", quoting=csv.QUOTE_MINIMAL)   # separators, quotes, CR/LF quoted
+    writer.writerow([escape_cell(cell) for cell in head])
     for row in rows:
         varied = [_cell(row.varied.get(k)) for k in fields]
-        writer.writerow([row.index, row.job or "", row.status, _cell(row.seed), *varied, row.iterations,
+        writer.writerow([row.index, escape_cell(row.job or ""), row.status, _cell(row.seed), *varied, row.iterations,
                          _cell(row.iterations_planned), _cell(row.final_loss), _cell(row.final_parameter_error),
                          _cell(row.seconds), _cell(row.wall_seconds), _cell(row.time_to_error), row.attempts,
-                         row.error or ""])
+                         escape_cell(row.error or "")])
     return buffer.getvalue()
+
+
+#: Characters with which a spreadsheet starts a formula (OWASP, "CSV Injection").
+FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
+_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
+
+
+def escape_cell(value: Any) -> Any:
+    """A CSV cell a spreadsheet will not run as a formula (OWASP's recommendation): text that starts
+    with ``=``, ``+``, ``-``, ``@``, a tab or a carriage return gets a leading single quote. Numbers
+    (and text that is exactly a number, such as ``-0.5``) are left as they are; the writer quotes
+    separators, quotes and line breaks."""
+    if not isinstance(value, str) or not value.startswith(FORMULA_STARTS) or _NUMBER.fullmatch(value):
+        return value
+    return "'" + value
 
 
 def _cell(value: Any) -> str:
@@ -164,9 +180,11 @@ def _cell(value: Any) -> str:
         return ""
     if isinstance(value, float):
         return repr(value)
-    if isinstance(value, (str, int)):
+    if isinstance(value, int):
         return str(value)
-    return json.dumps(value, separators=(",", ":"))
+    if isinstance(value, str):
+        return escape_cell(value)
+    return escape_cell(json.dumps(value, separators=(",", ":")))
 
 
 def curves(runs: list[tuple[RunState, dict | None]]) -> Curves:
