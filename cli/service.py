@@ -46,10 +46,21 @@ def serve_command(host: str, port: int, processes: int) -> None:
         if not settings.redis_url:
             raise click.ClickException("--workers > 1 needs REDIS_URL: embedded mode keeps its queue in one process")
         # Each process builds its app from the environment (the store and Redis are shared state).
-        uvicorn.run("api.app:create_app", factory=True, workers=processes, host=host, port=port, log_level="info",
-                    timeout_graceful_shutdown=10)
+        uvicorn.run("api.app:create_app", factory=True, workers=processes, host=host, port=port,
+                    **server_options(settings))
         return
-    uvicorn.run(create_app(settings), host=host, port=port, log_level="info", timeout_graceful_shutdown=10)
+    uvicorn.run(create_app(settings), host=host, port=port, **server_options(settings))
+
+
+def server_options(settings) -> dict:
+    """uvicorn's limits for slow or greedy clients (docs/security.md): idle keep-alive connections
+    closed after ``NDRF_KEEP_ALIVE_SECONDS``, at most ``NDRF_MAX_CONNECTIONS`` connections and
+    requests at once per process (a 503 beyond), headers of at most ``NDRF_MAX_HEADER_BYTES``. The
+    h11 implementation is named because only it enforces the header size; the body's read time is
+    bounded by the app (``NDRF_BODY_READ_SECONDS``); uvicorn has no header read timeout."""
+    return {"log_level": "info", "timeout_graceful_shutdown": 10, "http": "h11",
+            "timeout_keep_alive": int(settings.keep_alive_seconds), "limit_concurrency": settings.max_connections,
+            "h11_max_incomplete_event_size": settings.max_header_bytes, "server_header": False}
 
 
 @click.command("worker")

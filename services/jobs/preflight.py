@@ -13,6 +13,7 @@ The API process itself never imports Mitsuba or torch.
 from __future__ import annotations
 
 import logging
+import re
 import tempfile
 from pathlib import Path
 
@@ -36,14 +37,33 @@ def loader_limits(limits: Limits) -> ChildLimits:
                        wall_seconds=limits.preflight_seconds)
 
 
+#: A native source location in a Mitsuba / Dr.Jit message: ``[parser.cpp:1718] `` or ``(xml.h:12)``.
+_SOURCE_LOCATION = re.compile(r"[\[(][\w./-]*\.(?:cpp|cc|c|h|hpp|inl):\d+[\])]\s*")
+_TEMP_FOLDER = re.compile(re.escape(tempfile.gettempdir().rstrip("/")) + r"/ndrf-[\w.-]+/(?:scene/)?")
+_ABSOLUTE = re.compile(r"(?<![\w.])/(?:[\w.+-]+/)+([\w.+-]+)")
+
+
+def public_message(text: str) -> str:
+    """A scene error as clients see it: the staging folder stripped (``scene.xml``, not
+    ``/tmp/ndrf-describe-x/scene/scene.xml``), other absolute paths cut to their last part, and
+    native source locations (``[parser.cpp:1718]``) removed. The full text goes to the log."""
+    text = _SOURCE_LOCATION.sub("", _TEMP_FOLDER.sub("", text))
+    return _ABSOLUTE.sub(r"\1", text)
+
+
 def _in_child(mode: str, start: dict, scene: SceneSpec, limits: Limits, cwd: Path) -> dict:
     try:
         kind, meta = exchange(mode, start, loader_limits(limits), cwd, "the scene loader")
     except ChildFailed as exc:
         field = "scene.files" if isinstance(scene, XmlScene) and scene.files else "scene"
-        raise InvalidJob(field, f"the scene could not be loaded: {exc}") from None
+        log.info("scene loader failed: %s", exc)
+        raise InvalidJob(field, f"the scene could not be loaded: {public_message(str(exc))}") from None
     if kind == "invalid":
-        raise InvalidJob(str(meta.get("field", "scene")), str(meta.get("message", "invalid")))
+        message = str(meta.get("message", "invalid"))
+        scrubbed = public_message(message)
+        if scrubbed != message:
+            log.info("scene refused (%s): %s", meta.get("field", "scene"), message)
+        raise InvalidJob(str(meta.get("field", "scene")), scrubbed)
     return meta
 
 

@@ -201,6 +201,9 @@ class AttemptRunner:
 
     def _fail(self, writer: JobWriter, error: str, field: str | None = None) -> AttemptResult:
         log.warning("job %s failed: %s", writer.job_id, error)
+        from services.jobs.preflight import public_message
+
+        error = public_message(error)   # clients read it: no staging folders or native source locations
         try:
             writer.finish({"status": Outcome.FAILED, "iterations": _next_iteration(writer.files), "seconds": 0.0,
                            "error": error, "field": field, "parameters": None})
