@@ -201,14 +201,22 @@ class JobService:
         if record.status not in FINISHED:
             raise Conflict(f"job {job_id} is {record.status.value}: cancel it first", record)
         self.store.delete_prefix(f"{job_id}/")
+        self._forget_claim(record)
         log.info("deleted job %s", job_id)
+
+    def _forget_claim(self, record: JobRecord) -> None:
+        """Delete the idempotency claim of a deleted job (a retry with its key then makes a new job)."""
+        if record.idempotency_key:
+            self.store.delete_prefix(self._claim_key(Caller(record.owner), record.idempotency_key))
 
     def sweep(self, retention_days: float) -> list[str]:
         """Delete finished jobs last changed more than ``retention_days`` ago."""
         cutoff = (datetime.now(UTC) - timedelta(days=retention_days)).isoformat(timespec="milliseconds")
-        gone = [r.id for r in self.records() if r.status in FINISHED and r.updated < cutoff]
-        for job_id in gone:
-            self.store.delete_prefix(f"{job_id}/")
+        old = [r for r in self.records() if r.status in FINISHED and r.updated < cutoff]
+        gone = [r.id for r in old]
+        for record in old:
+            self.store.delete_prefix(f"{record.id}/")
+            self._forget_claim(record)
         if gone:
             log.info("retention: deleted %d finished job(s) older than %g days", len(gone), retention_days)
         return gone
