@@ -121,7 +121,7 @@ class GuardedRoute(APIRoute):
                 raise ProblemError(408, "Request timeout", str(exc), slug="body-timeout",
                                    headers={"Connection": "close"}) from None
             if body and _is_json(request):
-                request._json = await anyio.to_thread.run_sync(self._parse, body, limits, validate_here)  # type: ignore[attr-defined]
+                request._json = await anyio.to_thread.run_sync(self._parse, body, limits, validate_here)
             return await handler(request)
 
         return guarded

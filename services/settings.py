@@ -58,7 +58,7 @@ class Limits(BaseSettings):
     json_items: int = Field(10_000, ge=16, le=10_000_000, description="Most items of one JSON array (guards "
                                                                       "against lists of millions of values, each "
                                                                       "one parsed, validated and reported).")
-    json_tokens: int = Field(200_000, ge=1000, le=100_000_000,
+    json_tokens: int = Field(50_000, ge=1000, le=100_000_000,
                              description="Most strings, containers and separators in one JSON body (bounds the "
                                          "objects a body can make the API build, whatever its size: uploads are "
                                          "few long base64 strings).")
