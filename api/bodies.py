@@ -92,10 +92,11 @@ def cap_errors(errors: list[Any], total: int, cap: int) -> RequestValidationErro
     return exc
 
 
-def _is_json(request: Request) -> bool:
+def _is_json(request: Request, strict: bool) -> bool:
+    """Whether FastAPI would parse this body as JSON (without a content type: only when not strict)."""
     content_type = request.headers.get("content-type")
     if not content_type:
-        return True
+        return not strict
     media = content_type.split(";", 1)[0].strip().lower()
     return media == "application/json" or (media.startswith("application/") and media.endswith("+json"))
 
@@ -110,6 +111,8 @@ class GuardedRoute(APIRoute):
         if field is None:
             return handler
         validate_here = not self._embed_body_fields
+        strict = getattr(self, "strict_content_type", True)
+        strict = getattr(strict, "value", strict)   # a DefaultPlaceholder unless set
 
         async def guarded(request: Request) -> Response:
             limits: Limits = request.app.state.runtime.settings.limits
@@ -120,7 +123,7 @@ class GuardedRoute(APIRoute):
             except BodyTimeout as exc:
                 raise ProblemError(408, "Request timeout", str(exc), slug="body-timeout",
                                    headers={"Connection": "close"}) from None
-            if body and _is_json(request):
+            if body and _is_json(request, bool(strict)):
                 request._json = await anyio.to_thread.run_sync(self._parse, body, limits, validate_here)
             return await handler(request)
 
