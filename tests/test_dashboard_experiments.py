@@ -30,7 +30,9 @@ def api(tmp_path_factory):
 
 @pytest.fixture()
 def page(browser):
-    context = browser.new_context(viewport={"width": 1360, "height": 900})
+    # bypass_csp: Playwright's wait_for_function evaluates strings in the page, which the dashboard's
+    # CSP forbids (test_the_dashboard_runs_under_its_content_security_policy keeps it)
+    context = browser.new_context(viewport={"width": 1360, "height": 900}, bypass_csp=True)
     page = context.new_page()
     page.set_default_timeout(30_000)
     errors: list[str] = []
