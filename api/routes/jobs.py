@@ -51,7 +51,8 @@ async def submit_job(spec: JobSpec, response: Response, runtime: RuntimeDep, cal
         existing = await anyio.to_thread.run_sync(service.find_idempotent, caller, idempotency_key,
                                                   limiter=runtime.blocking)
         if existing is not None:
-            return _accepted(response, existing.id, existing.status, spec, existing.fingerprint)
+            return _accepted(response, existing.id, existing.status, await _fingerprint(spec),
+                             existing.fingerprint)
     await validate_job(spec, runtime)
 
     def submit():
@@ -63,11 +64,17 @@ async def submit_job(spec: JobSpec, response: Response, runtime: RuntimeDep, cal
         raise ProblemError(409, "Conflict", str(exc), slug="idempotency-conflict") from None
     except TooManyJobs as exc:
         raise ProblemError(429, "Too many jobs", str(exc), slug="too-many-jobs", headers={"Retry-After": "30"}) from None
-    return _accepted(response, record.id, record.status, spec, record.fingerprint)
+    return _accepted(response, record.id, record.status, await _fingerprint(spec), record.fingerprint)
 
 
-def _accepted(response: Response, job_id: str, status: JobStatus, spec: JobSpec, fingerprint: str | None) -> JobAccepted:
-    if fingerprint not in (None, spec.fingerprint()):
+async def _fingerprint(spec: JobSpec) -> str:
+    """The job's hash, in a worker thread (it serializes the whole job: uploads included)."""
+    return await anyio.to_thread.run_sync(spec.fingerprint)
+
+
+def _accepted(response: Response, job_id: str, status: JobStatus, spec_fingerprint: str,
+              fingerprint: str | None) -> JobAccepted:
+    if fingerprint not in (None, spec_fingerprint):
         raise ProblemError(409, "Conflict", "this Idempotency-Key was used for a different job",
                            slug="idempotency-conflict")
     base = f"/v1/jobs/{job_id}"
