@@ -299,3 +299,7 @@ def test_results_csv_cells_cannot_be_formulas(stack):
     names = [row[table[0].index("name")] for row in table[1:]]
     assert names == ["'" + text for text in hostile]
     assert not any(cell.startswith(("=", "+", "@", "\t", "\r")) for row in table for cell in row)
+    # an experiment's read token does not renew itself either
+    token = api.json("GET", f"/v1/experiments/{accepted['id']}")[2]["read_token"]
+    _, _, seen = Api(api.base, None).json("GET", f"/v1/experiments/{accepted['id']}?token={token}")
+    assert token and seen["read_token"] is None
