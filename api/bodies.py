@@ -25,7 +25,7 @@ from fastapi import Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.routing import APIRoute
 
-from api.guard import BodyTimeout, BodyTooLarge
+from api.guard import BodyBusy, BodyTimeout, BodyTooLarge
 from api.problems import ProblemError
 from services.settings import Limits
 
@@ -120,6 +120,9 @@ class GuardedRoute(APIRoute):
                 body = await request.body()
             except BodyTooLarge as exc:
                 raise ProblemError(413, "Payload too large", str(exc), slug="too-large") from None
+            except BodyBusy as exc:
+                raise ProblemError(503, "Busy", str(exc), slug="busy",
+                                   headers={"Retry-After": "5", "Connection": "close"}) from None
             except BodyTimeout as exc:
                 raise ProblemError(408, "Request timeout", str(exc), slug="body-timeout",
                                    headers={"Connection": "close"}) from None

@@ -6,6 +6,10 @@
   routes.)
 - **The body cap** (``NDRF_MAX_UPLOAD_BYTES``): a declared ``Content-Length`` over it is a 413 before
   anything is read; a chunked body is counted as it arrives and stopped with a 413 at the cap.
+- **The body memory** (``NDRF_MAX_BODY_MEMORY_BYTES``): the body bytes all requests of this process
+  hold at once, counted as they arrive and held until the request is answered; a body that would
+  go over (by its declared length, or as it arrives) is a 503 with ``Retry-After``, so concurrent
+  large bodies cannot add up.
 - **The body read time** (``NDRF_BODY_READ_SECONDS``): a body still incomplete that long after the
   headers is a 408. (uvicorn has no header read timeout: see docs/security.md.)
 - **Security headers** on every response: ``X-Content-Type-Options: nosniff``,
@@ -37,6 +41,10 @@ class BodyTooLarge(Exception):
     """The body crossed the cap while it was being received."""
 
 
+class BodyBusy(Exception):
+    """The bodies being received by this process already hold ``NDRF_MAX_BODY_MEMORY_BYTES``."""
+
+
 class BodyTimeout(Exception):
     """The body was not complete within ``NDRF_BODY_READ_SECONDS`` of the headers."""
 
@@ -56,6 +64,8 @@ class Guard:
     def __init__(self, app: ASGIApp, settings: Settings):
         self.app, self.settings = app, settings
         self.limit = settings.limits.upload_bytes
+        self.budget = max(settings.limits.body_memory_bytes, self.limit)
+        self.held = 0   # body bytes reserved by the requests in progress (one event loop: no lock)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -83,12 +93,15 @@ class Guard:
         if declared is not None and declared.isdigit() and int(declared) > self.limit:
             return await _problem(send_with_headers, scope, 413, "Payload too large", self._too_large(),
                                   "too-large", [(b"connection", b"close")])
-        seen = 0
+        if declared is not None and declared.isdigit() and self.held + int(declared) > self.budget:
+            return await _problem(send_with_headers, scope, 503, "Busy", self._busy(), "busy",
+                                  [(b"retry-after", b"5"), (b"connection", b"close")])
+        seen = reserved = 0
         deadline = time.monotonic() + self.settings.body_read_seconds
         complete = False
 
         async def counted() -> Message:
-            nonlocal seen, complete
+            nonlocal seen, complete, reserved
             if complete:
                 return await receive()
             try:
@@ -102,6 +115,11 @@ class Guard:
                 complete = not message.get("more_body", False)
                 if seen > self.limit:
                     raise BodyTooLarge(self._too_large())
+                if seen > reserved:   # held as it arrives: a slow client holds only what it sent
+                    if self.held + seen - reserved > self.budget:
+                        raise BodyBusy(self._busy())
+                    self.held += seen - reserved
+                    reserved = seen
             return message
 
         try:
@@ -110,10 +128,20 @@ class Guard:
             if not started:
                 await _problem(send_with_headers, scope, 413, "Payload too large", self._too_large(), "too-large",
                                [(b"connection", b"close")])
+        except BodyBusy:
+            if not started:
+                await _problem(send_with_headers, scope, 503, "Busy", self._busy(), "busy",
+                               [(b"retry-after", b"5"), (b"connection", b"close")])
         except BodyTimeout as exc:
             if not started:
                 await _problem(send_with_headers, scope, 408, "Request timeout", str(exc), "body-timeout",
                                [(b"connection", b"close")])
+        finally:
+            self.held -= reserved
+
+    def _busy(self) -> str:
+        return (f"the API is receiving {self.budget} bytes of request bodies already (NDRF_MAX_BODY_MEMORY_BYTES); "
+                f"retry later")
 
     def _too_large(self) -> str:
         return f"the request body exceeds the limit of {self.limit} bytes (NDRF_MAX_UPLOAD_BYTES)"

@@ -30,6 +30,11 @@ class Limits(BaseSettings):
     iterations: int = Field(2000, ge=1, description="Most iterations of one job.")
     parameters: int = Field(64, ge=1, description="Most optimized scalars (an RGB value counts 3).")
     upload_bytes: int = Field(64 << 20, ge=1024, description="Largest request body.")
+    body_memory_bytes: int = Field(64 << 20, ge=1 << 20, le=1 << 40,
+                                   description="Most request-body bytes one API process holds at once, all requests "
+                                               "together (at least upload_bytes); a body that would exceed it gets a "
+                                               "503 with Retry-After. Bounds the API's memory whatever clients send: "
+                                               "reading and parsing take about 2.5 times the bytes held.")
     mesh_bytes: int = Field(32 << 20, ge=1024, description="Largest single uploaded file (mesh, texture).")
     image_pixels: int = Field(4 << 20, ge=1, description="Largest target image (width x height), read from "
                                                           "its header before it is decoded.")

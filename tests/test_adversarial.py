@@ -140,6 +140,28 @@ def test_a_body_of_many_small_values_near_the_cap(stack):
     assert "NDRF_MAX_JSON" in problem(answer)["detail"]
 
 
+def test_concurrent_large_bodies_share_the_memory_budget(stack):
+    body = b"[" + b"0," * (25 << 20) + b"0]"    # 50 MiB each, 6 at once
+    answers: list[int] = []
+
+    def one():
+        try:
+            answers.append(post(stack, "/v1/jobs", body)()[0])
+        except OSError:   # refused before the client finished sending
+            answers.append(503)
+
+    def send():
+        threads = [threading.Thread(target=one) for _ in range(6)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(60)
+        return (503 if 503 in answers else 0), {}, b""
+
+    attack(stack, "6 x 50 MiB bodies at once", send, 503, "413 / 503 + Retry-After (NDRF_MAX_BODY_MEMORY_BYTES)")
+    assert len(answers) == 6 and set(answers) <= {413, 503} and 413 in answers, answers
+
+
 # ------------------------------------------------------------- 2. bodies before authentication
 
 @pytest.mark.parametrize("key", [None, "wrong-key"])

@@ -80,3 +80,51 @@ def test_metrics_slashes_and_headers(client):
     assert page.headers["x-frame-options"] == "DENY" and page.headers["x-content-type-options"] == "nosniff"
     assert "script-src 'self'" in page.headers["content-security-policy"]
     assert client.get("/v1/jobs", headers=ALICE).headers["content-security-policy"].startswith("default-src 'none'")
+
+
+def test_concurrent_bodies_share_one_memory_budget(tmp_path):
+    """Bodies held at once count against NDRF_MAX_BODY_MEMORY_BYTES: a body that would go over is a
+    503 with Retry-After (declared), and the bytes are given back when a request is answered."""
+    import anyio
+
+    from api.guard import Guard
+
+    settings = Settings(store=str(tmp_path), limits=Limits(upload_bytes=1 << 20, body_memory_bytes=1 << 20))
+    answers: list[int] = []
+    release = anyio.Event()
+
+    async def app(scope, receive, send):
+        while (await receive()).get("more_body"):
+            pass
+        await release.wait()
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b""})
+
+    guard = Guard(app, settings)
+
+    async def request(length: int):
+        messages = [{"type": "http.request", "body": b" " * length, "more_body": False}]
+
+        async def receive():
+            return messages.pop(0) if messages else {"type": "http.disconnect"}
+
+        async def send(message):
+            if message["type"] == "http.response.start":
+                answers.append(message["status"])
+
+        scope = {"type": "http", "method": "POST", "path": "/v1/jobs",
+                 "headers": [(b"content-length", str(length).encode())]}
+        await guard(scope, receive, send)
+
+    async def main():
+        async with anyio.create_task_group() as tasks:
+            tasks.start_soon(request, 700 << 10)
+            await anyio.sleep(0.05)
+            await request(700 << 10)            # 1.4 MiB held at once: refused at once
+            assert guard.held == 700 << 10
+            release.set()
+        assert guard.held == 0
+        await request(700 << 10)                # given back: accepted again
+
+    anyio.run(main)
+    assert answers == [503, 200, 200]
