@@ -116,7 +116,7 @@ class Settings(BaseSettings):
     max_connections: int = Field(1000, ge=1, le=100_000,
                                  description="Most concurrent connections and requests of one API process; beyond "
                                              "it new requests get a 503 (uvicorn limit_concurrency).")
-    max_header_bytes: int = Field(64 << 10, ge=4096, le=16 << 20,
+    max_header_bytes: int = Field(16 << 10, ge=4096, le=16 << 20,
                                   description="Largest request line and headers (uvicorn's h11 "
                                               "h11_max_incomplete_event_size): a larger header section is a 400.")
     retention_days: float | None = Field(None, gt=0, description="Delete finished jobs older than this many "
