@@ -55,10 +55,13 @@ def serve_command(host: str, port: int, processes: int) -> None:
 def server_options(settings) -> dict:
     """uvicorn's limits for slow or greedy clients (docs/security.md): idle keep-alive connections
     closed after ``NDRF_KEEP_ALIVE_SECONDS``, at most ``NDRF_MAX_CONNECTIONS`` connections and
-    requests at once per process (a 503 beyond), headers of at most ``NDRF_MAX_HEADER_BYTES``. The
-    h11 implementation is named because only it enforces the header size; the body's read time is
-    bounded by the app (``NDRF_BODY_READ_SECONDS``); uvicorn has no header read timeout."""
-    return {"log_level": "info", "timeout_graceful_shutdown": 10, "http": "h11",
+    requests at once per process (a 503 beyond), headers of at most ``NDRF_MAX_HEADER_BYTES`` read
+    within ``NDRF_HEADER_READ_SECONDS`` (:mod:`api.server`: h11, the implementation that enforces
+    the header size, with a header timeout uvicorn lacks); the body's read time is the app's
+    (``NDRF_BODY_READ_SECONDS``)."""
+    from api.server import PROTOCOL
+
+    return {"log_level": "info", "timeout_graceful_shutdown": 10, "http": PROTOCOL,
             "timeout_keep_alive": int(settings.keep_alive_seconds), "limit_concurrency": settings.max_connections,
             "h11_max_incomplete_event_size": settings.max_header_bytes, "server_header": False}
 

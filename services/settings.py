@@ -110,6 +110,11 @@ class Settings(BaseSettings):
                                      description="Time allowed to receive a request's whole body once its headers "
                                                  "are in (a 408 after): guards against slow bodies holding a "
                                                  "connection. uvicorn has no timeout on reading headers.")
+    header_read_seconds: float = Field(10.0, ge=1.0, le=600.0,
+                                       description="Time allowed to receive a request's line and headers, from "
+                                                   "the connection's opening or the previous response: the "
+                                                   "connection is closed after (guards against clients that hold "
+                                                   "connections by sending headers slowly).")
     keep_alive_seconds: float = Field(5.0, ge=1.0, le=300.0, description="An idle keep-alive connection is closed "
                                                                          "after this long (uvicorn "
                                                                          "timeout_keep_alive).")
