@@ -87,3 +87,19 @@ def test_cancel_delete_and_retention(service):
     time.sleep(0.01)                                                # record times have millisecond resolution
     assert service.sweep(retention_days=1e-9) == [old.id]           # finished more than ~0.1 ms ago
     assert running.id in service.ids()                              # active jobs are never swept
+
+
+def test_an_idempotency_claim_goes_with_its_job(service):
+    """Deleting a job (or retention sweeping it) deletes its idempotency claim: no claim files pile up,
+    and the key then makes a new job."""
+    first, created = service.submit(spec(), ALICE, "retry-me")
+    assert created and service.find_idempotent(ALICE, "retry-me").id == first.id
+    service.cancel(first.id, ALICE)
+    service.delete(first.id, ALICE)
+    assert service.find_idempotent(ALICE, "retry-me") is None
+    second, created = service.submit(spec(), ALICE, "retry-me")
+    assert created and second.id != first.id
+    service.cancel(second.id, ALICE)
+    time.sleep(0.01)
+    assert service.sweep(retention_days=1e-9) == [second.id]
+    assert service.store.get(service._claim_key(ALICE, "retry-me")) is None
