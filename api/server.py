@@ -32,6 +32,8 @@ class HeaderTimeoutH11(H11Protocol):
     """``H11Protocol`` that closes connections whose headers do not arrive in time (module docstring)."""
 
     header_timer: asyncio.TimerHandle | None = None
+    #: Overrides NDRF_HEADER_READ_SECONDS (tests).
+    seconds: float | None = None
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
@@ -53,7 +55,7 @@ class HeaderTimeoutH11(H11Protocol):
 
     def _arm(self) -> None:
         self._disarm()
-        self.header_timer = self.loop.call_later(_header_seconds(), self._expired)
+        self.header_timer = self.loop.call_later(self.seconds or _header_seconds(), self._expired)
 
     def _disarm(self) -> None:
         if self.header_timer is not None:
@@ -64,5 +66,5 @@ class HeaderTimeoutH11(H11Protocol):
         self.header_timer = None
         if self.conn.their_state is h11.IDLE and not self.transport.is_closing():
             log.info("closing a connection from %s: no complete request headers within %g s "
-                     "(NDRF_HEADER_READ_SECONDS)", self.client, _header_seconds())
+                     "(NDRF_HEADER_READ_SECONDS)", self.client, self.seconds or _header_seconds())
             self.transport.close()
