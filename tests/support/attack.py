@@ -1,4 +1,4 @@
-"""The measuring side of the adversarial suite (tests/test_adversarial.py): raw HTTP requests whose
+"""The measuring side of the adversarial suite (tests/e2e/test_adversarial.py): raw HTTP requests whose
 body is sent while the response is read (a server may answer before reading it), a sampler of a
 process's resident memory, a ``/healthz`` prober, and the table of what each attack cost."""
 

@@ -1,6 +1,6 @@
 """The chaos harness: N jobs on W workers in Redis mode while things break, and what the jobs'
 records and event logs say afterwards. ``python -m bench.chaos`` runs it at full size and writes
-``bench/results/chaos.*``; ``tests/test_chaos.py`` runs a short version and asserts on its report.
+``bench/results/chaos.*``; ``tests/e2e/test_chaos.py`` runs a short version and asserts on its report.
 
 What breaks: every ``kill_every`` seconds a worker that is running a job is SIGKILLed and a new
 worker process is started under the same name; once, Redis is killed and restarted empty (no

@@ -1,7 +1,7 @@
 """Issue 27's request defences in-process (the app on a TestClient, embedded mode, API keys set):
 authentication before the body, the cap on chunked bodies, the JSON limits, capped validation
 errors, tokens that do not renew, /metrics for admins, no slash redirects, security headers. The
-same attacks against a real server, with memory and /healthz measured: tests/test_adversarial.py."""
+same attacks against a real server, with memory and /healthz measured: tests/e2e/test_adversarial.py."""
 
 from __future__ import annotations
 

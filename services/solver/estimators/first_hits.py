@@ -11,7 +11,7 @@ fields do. With ``K = W·H·spp`` rays of a sensor (pixel-major, ``spp`` consecu
     dz/dp_a    = Σ_k Σ_c dz/dy[pixel(k), c] · ∂y_k[a, c] / spp                       (Eq. 10)
 
 ``L_phi`` holds every bounce, so the field candidate does not truncate paths as a path tracer of
-finite depth does; its bias is the field's error (``tests/test_first_hits.py`` measures it against
+finite depth does; its bias is the field's error (``tests/unit/test_first_hits.py`` measures it against
 a deep path tracer). The pixel samples are fixed for the whole job: the loss is the loss of that
 image, and a pixel straddling an edge keeps the value of its fixed samples (use a few spp where
 edges matter). With a box filter (the usual case) the film average is the mean of a pixel's

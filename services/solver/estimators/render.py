@@ -6,7 +6,7 @@ synthetic targets): there is no default depth below this module, so a truncation
 decision someone wrote down. The product's default is :data:`UNBIASED`, Mitsuba's own: unbounded
 paths ended by Russian roulette from depth 5. Roulette is unbiased (a path it keeps is re-weighted
 by the inverse of its survival probability); truncating at a fixed depth is not, and in a bright
-closed room a depth of 12 misses a quarter of the light (``tests/test_depth_bias.py``).
+closed room a depth of 12 misses a quarter of the light (``tests/unit/test_depth_bias.py``).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@ two tenant keys and an admin key). Each attack class is sent as the outside prob
 its variants; each must get its stated answer while the API's resident memory stays below idle +
 300 MiB and ``/healthz`` answers within 1 s. Every attack's answer, time, peak memory above idle and
 worst ``/healthz`` latency are written to ``adversarial.json`` in the test's tmp folder and logged as
-a table (``pytest -o log_cli=true --log-cli-level=WARNING tests/test_adversarial.py`` shows it)."""
+a table (``pytest -o log_cli=true --log-cli-level=WARNING tests/e2e/test_adversarial.py`` shows it)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Several machines, no shared disk: the API and two workers (real processes) share a Redis and a
 bucket of the moto S3 server on loopback, each with a scratch folder of its own, and nothing else
-on disk in common. (tests/test_service.py runs the whole service suite against both stores; this
+on disk in common. (tests/e2e/test_service.py runs the whole service suite against both stores; this
 file adds what only a bucket-shaped deployment shows.)"""
 
 from __future__ import annotations
