@@ -34,6 +34,7 @@ from schemas.records import IterationRecord
 from services.solver.estimators.losses import ImageLoss
 from services.solver.estimators.methods import GradientMethod
 from services.solver.optimize import checkpoint
+from services.solver.optimize.background import BackgroundReporter
 from services.solver.optimize.build import Built, build
 from services.solver.optimize.images import ImageSchedule, render_views
 from services.solver.optimize.optimizers import ParameterOptimizer, make_optimizer
@@ -111,7 +112,18 @@ class InverseRenderingRun:
 
     def execute(self) -> RunOutcome:
         """Run to the end, to a cancel or to an interruption. A job that fails returns a failed
-        outcome (never raises); a reporter's exception propagates unchanged."""
+        outcome (never raises); a reporter's exception propagates unchanged. Reports are written
+        on a thread of their own while the loop computes (:mod:`.background`)."""
+        host = self.reporter
+        background = BackgroundReporter(host)
+        self.reporter = background
+        try:
+            return self._execute()
+        finally:
+            self.reporter = host
+            background.close()
+
+    def _execute(self) -> RunOutcome:
         started = time.perf_counter()
         state = trainer = None
         try:
@@ -132,6 +144,8 @@ class InverseRenderingRun:
                     self.reporter.plan(self._plan(prepared, built, recipe))
                 if state.next_iteration % self.spec.checkpoint_every == 0 or state.next_iteration == self.spec.iterations:
                     self._checkpoint(state, recipe, trainer)
+            if isinstance(self.reporter, BackgroundReporter):
+                self.reporter.flush()  # success only once every report is written
             return self._outcome(Outcome.SUCCEEDED, state, started)
         except RunAborted:
             raise
