@@ -91,6 +91,11 @@ class Settings(BaseSettings):
                                                           "worker is failed.")
     embedded_workers: int = Field(1, ge=1, le=16, description="Worker threads of the embedded mode.")
     preflight_workers: int = Field(2, ge=1, le=64, description="Scene loads running at once in the API.")
+    redis_connections: int = Field(32, ge=2, le=1024, description="Redis connections of one API process for short "
+                                                                  "commands (stream slots, event reads); a stream "
+                                                                  "that finds none free within a second is refused "
+                                                                  "with 503. Stream waits use one connection of "
+                                                                  "their own, whatever the number of streams.")
     limits: Limits = Field(default_factory=Limits)
 
     @field_validator("api_keys", "admin_keys", mode="before")
