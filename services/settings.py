@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import hashlib
 from functools import lru_cache
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import AliasChoices, Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
@@ -96,6 +96,11 @@ class Settings(BaseSettings):
                                                                   "that finds none free within a second is refused "
                                                                   "with 503. Stream waits use one connection of "
                                                                   "their own, whatever the number of streams.")
+    sandbox: Literal["auto", "required", "off"] = Field(
+        "auto", description="Namespaces of the sandboxed children (no network, read-only filesystem but their work "
+                            "folder, the store hidden, no capabilities): auto uses them where the machine allows "
+                            "and logs an ERROR where it does not; required refuses to start a child without them; "
+                            "off never uses them (docs/security.md).")
     limits: Limits = Field(default_factory=Limits)
 
     @field_validator("api_keys", "admin_keys", mode="before")

@@ -123,3 +123,89 @@ def test_a_child_in_a_new_session_keeps_the_niceness_of_a_niced_worker():
 
     assert session_nice(7) == "7"
     assert session_nice(0) == "0"                             # a worker at nice 0: nothing changed
+
+
+def _probe(tmp_path, start: dict, hide: tuple[str, ...] = ()) -> dict:
+    work = tmp_path / "scratch" / "job-1"
+    work.mkdir(parents=True, exist_ok=True)
+    kind, report = exchange("probe", start, ChildLimits(wall_seconds=60, hide=hide), work, "the probe")
+    assert kind == "probed"
+    return report
+
+
+@pytest.fixture()
+def sandbox_on(monkeypatch):
+    from services.jobs import sandbox
+    from services.settings import get_settings
+
+    command, why = sandbox.probe()
+    if command is None:
+        pytest.skip(f"this machine cannot create the child's namespaces: {why}")
+    monkeypatch.setenv("NDRF_SANDBOX", "required")
+    get_settings.cache_clear()
+    yield
+    get_settings.cache_clear()
+
+
+def test_a_sandboxed_child_cannot_write_the_store_nor_reach_redis(tmp_path, redis_server, sandbox_on):
+    """Issue 27, point 9, from inside a child: creating a file in the store folder fails (the
+    filesystem is read-only but the child's work folder), and so does connecting to Redis on
+    127.0.0.1 (a network namespace of its own); the store it was told to hide is empty to it, other
+    jobs' scratch folders are out of sight, and it has no capability left to undo any of this."""
+    import socket
+
+    store = tmp_path / "store"
+    (store / "0000000000000000001").mkdir(parents=True)
+    (store / "0000000000000000001" / "record.json").write_text("{}")
+    (tmp_path / "scratch" / "job-2").mkdir(parents=True)          # another job's scratch folder
+    host, port = "127.0.0.1", int(redis_server.url.rsplit(":", 1)[1].split("/")[0])
+    socket.create_connection((host, port), timeout=2).close()     # reachable from here
+    start = {"write": [str(store), str(store / "0000000000000000001"), str(tmp_path)],
+             "connect": [[host, port]], "list": [str(store), str(tmp_path / "scratch")],
+             "unmount": [str(store), "/"]}
+    seen = _probe(tmp_path, start)                                # the store read-only, not hidden
+    assert all(v.startswith("refused: Read-only file system") for v in seen["write"].values()), seen
+    assert seen["connect"][f"{host}:{port}"].startswith("refused"), seen
+    assert seen["list"][str(tmp_path / "scratch")] == "ok: ['job-1']", seen
+    assert all(v.startswith("refused") for v in seen["unmount"].values()), seen
+    assert seen["capabilities"] == "0" and seen["cwd_writable"].startswith("ok"), seen
+    hidden = _probe(tmp_path, start, hide=(str(store),))          # ... and hidden (NDRF_STORE's folder)
+    assert hidden["list"][str(store)] == "ok: []", hidden
+    assert hidden["write"][str(store)].startswith("refused"), hidden
+    assert sorted(p.name for p in store.iterdir()) == ["0000000000000000001"]   # nothing was written
+    assert [p.name for p in (store / "0000000000000000001").iterdir()] == ["record.json"]
+
+
+def test_without_the_sandbox_the_same_probe_writes_and_connects(tmp_path, redis_server, monkeypatch):
+    """The control of the test above (and what ``NDRF_SANDBOX=off``, or a machine without
+    namespaces, leaves): the same child writes the store and reaches Redis."""
+    from services.settings import get_settings
+
+    monkeypatch.setenv("NDRF_SANDBOX", "off")
+    get_settings.cache_clear()
+    try:
+        store = tmp_path / "store"
+        store.mkdir()
+        port = int(redis_server.url.rsplit(":", 1)[1].split("/")[0])
+        seen = _probe(tmp_path, {"write": [str(store)], "connect": [["127.0.0.1", port]]})
+    finally:
+        get_settings.cache_clear()
+    assert seen["write"][str(store)].startswith("ok") and seen["connect"][f"127.0.0.1:{port}"].startswith("ok"), seen
+
+
+def test_required_sandbox_refuses_to_start_a_child_where_namespaces_fail(tmp_path, monkeypatch):
+    """``NDRF_SANDBOX=required`` on a machine without namespaces: no child starts (the job or the
+    upload fails with the reason), rather than one that could write the store."""
+    from services.jobs import sandbox
+    from services.settings import get_settings
+
+    monkeypatch.setenv("NDRF_SANDBOX", "required")
+    monkeypatch.setattr(sandbox, "probe", lambda: (None, "unshare: operation not permitted"))
+    sandbox.command_prefix.cache_clear()
+    get_settings.cache_clear()
+    try:
+        with pytest.raises(ChildFailed, match="NDRF_SANDBOX=required"):
+            _probe(tmp_path, {})
+    finally:
+        sandbox.command_prefix.cache_clear()
+        get_settings.cache_clear()

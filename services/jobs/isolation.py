@@ -7,6 +7,9 @@ scene is only ever loaded in a child process started here (``python -m services.
   file size, no core dumps; a wall-clock deadline enforced by the parent;
 * an environment with nothing secret in it: no API keys, no Redis URL, no cloud credentials
   (the child talks to its parent only, over its stdin/stdout pipes);
+* namespaces of its own where the machine allows (:mod:`services.jobs.sandbox`): no network (no
+  route to Redis), a read-only filesystem but its work folder, the store hidden, no capabilities;
+  where it does not, an ERROR in the log says so and the points here are what holds;
 * its own process group, and ``PR_SET_PDEATHSIG``: it dies with the parent, and the parent kills
   it with everything it started;
 * its parent's priority: a new session is a new scheduler autogroup on Linux, which would
@@ -36,6 +39,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import BinaryIO
 
+from services.jobs import sandbox
+
 log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -55,6 +60,32 @@ class ChildLimits:
     wall_seconds: float | None = None
     open_files: int = 512
     file_bytes: int = 2 << 30
+    #: Folders covered by an empty read-only tmpfs in the child, besides the store folder of the
+    #: settings and the folder holding the child's work folder (:func:`hidden`).
+    hide: tuple[str, ...] = ()
+
+
+def hidden(limits: ChildLimits, cwd: Path) -> list[str]:
+    """What a sandboxed child must not see: the store folder (``NDRF_STORE``, when a folder), the
+    folder holding its work folder (the other jobs' scratch folders, the other uploads being
+    checked) and ``limits.hide``."""
+    from services.settings import get_settings
+
+    store = get_settings().store
+    folders = [str(cwd.resolve().parent), *limits.hide]
+    if "://" not in store:
+        folders.append(str(Path(store).resolve()))
+    return folders
+
+
+def _command(mode: str, limits: ChildLimits, cwd: Path) -> list[str]:
+    """The child's command line: through ``unshare`` when the sandbox is on (``NDRF_SANDBOX``)."""
+    from services.settings import get_settings
+
+    prefix = sandbox.command_prefix(get_settings().sandbox)
+    spec = {**asdict(limits), "sandbox": {"namespaces": bool(prefix), "hide": hidden(limits, cwd),
+                                          "parent_ns": sandbox.namespaces()}}
+    return [*prefix, sys.executable, "-m", "services.jobs.child", mode, json.dumps(spec)]
 
 
 def _environment() -> dict[str, str]:
@@ -82,6 +113,7 @@ def apply_limits(limits: dict) -> None:
     resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
     if limits.get("cpu_seconds") is not None:
         resource.setrlimit(resource.RLIMIT_CPU, (limits["cpu_seconds"], limits["cpu_seconds"] + 5))
+    sandbox.enter(limits.get("sandbox", {}))
 
 
 def keep_priority() -> None:
@@ -108,8 +140,12 @@ class Child:
 
     def __init__(self, mode: str, limits: ChildLimits, cwd: Path, label: str):
         self.limits, self.label = limits, label
+        try:
+            command = _command(mode, limits, cwd)
+        except sandbox.SandboxUnavailable as exc:
+            raise ChildFailed(str(exc)) from None
         self.proc: subprocess.Popen[bytes] = subprocess.Popen(
-            [sys.executable, "-m", "services.jobs.child", mode, json.dumps(asdict(limits))], cwd=cwd,
+            command, cwd=cwd,
             env=_environment(), stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
             start_new_session=True, close_fds=True)
         self.stdin, self.stdout = self.proc.stdin, self.proc.stdout  # type: ignore[assignment]
