@@ -101,9 +101,13 @@ class Settings(BaseSettings):
                             "folder, the store hidden, no capabilities): auto uses them where the machine allows "
                             "and logs an ERROR where it does not; required refuses to start a child without them; "
                             "off never uses them (docs/security.md).")
+    sandbox_hide: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="More folders covered by an empty read-only tmpfs in sandboxed children "
+                                          "(comma-separated): credentials or data the service's uid can read and "
+                                          "a child must not (the store folder and the scratch folders always are).")
     limits: Limits = Field(default_factory=Limits)
 
-    @field_validator("api_keys", "admin_keys", mode="before")
+    @field_validator("api_keys", "admin_keys", "sandbox_hide", mode="before")
     @classmethod
     def _split(cls, value):
         if isinstance(value, str):

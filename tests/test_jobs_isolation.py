@@ -147,12 +147,14 @@ def sandbox_on(monkeypatch):
     get_settings.cache_clear()
 
 
-def test_a_sandboxed_child_cannot_write_the_store_nor_reach_redis(tmp_path, redis_server, sandbox_on):
+def test_a_sandboxed_child_cannot_write_the_store_nor_reach_redis(tmp_path, redis_server, sandbox_on, monkeypatch):
     """Issue 27, point 9, from inside a child: creating a file in the store folder fails (the
     filesystem is read-only but the child's work folder), and so does connecting to Redis on
     127.0.0.1 (a network namespace of its own); the store it was told to hide is empty to it, other
     jobs' scratch folders are out of sight, and it has no capability left to undo any of this."""
     import socket
+
+    from services.settings import get_settings
 
     store = tmp_path / "store"
     (store / "0000000000000000001").mkdir(parents=True)
@@ -169,9 +171,14 @@ def test_a_sandboxed_child_cannot_write_the_store_nor_reach_redis(tmp_path, redi
     assert seen["list"][str(tmp_path / "scratch")] == "ok: ['job-1']", seen
     assert all(v.startswith("refused") for v in seen["unmount"].values()), seen
     assert seen["capabilities"] == "0" and seen["cwd_writable"].startswith("ok"), seen
-    hidden = _probe(tmp_path, start, hide=(str(store),))          # ... and hidden (NDRF_STORE's folder)
+    secret = tmp_path / "credentials"
+    secret.write_text("aws_secret_access_key = k")
+    monkeypatch.setenv("NDRF_SANDBOX_HIDE", str(secret))
+    get_settings.cache_clear()
+    hidden = _probe(tmp_path, {**start, "read": [str(secret)]}, hide=(str(store),))  # ... hidden (NDRF_STORE's)
     assert hidden["list"][str(store)] == "ok: []", hidden
     assert hidden["write"][str(store)].startswith("refused"), hidden
+    assert hidden["read"][str(secret)] == "ok: ", hidden       # NDRF_SANDBOX_HIDE: reads empty
     assert sorted(p.name for p in store.iterdir()) == ["0000000000000000001"]   # nothing was written
     assert [p.name for p in (store / "0000000000000000001").iterdir()] == ["record.json"]
 

@@ -7,8 +7,9 @@
 ``describe``  load a scene and list its optimizable parameters and films: ``described`` {scene}
 ``probe``     what the sandbox lets a child do, for the tests and an operator's check: tries to
               create a file in each ``write`` folder, to connect to each ``connect`` address, to
-              list each ``list`` folder and to unmount each ``unmount`` folder; answers ``probed``
-              {write, connect, list, unmount, uid, capabilities, cwd_writable}
+              list each ``list`` folder, to read each ``read`` file and to unmount each ``unmount``
+              folder; answers ``probed`` {write, connect, list, read, unmount, uid, capabilities,
+              cwd_writable}
 ``run``       run the job (:class:`services.solver.optimize.loop.InverseRenderingRun`), forwarding
            every report as a frame (``plan``, ``targets``, ``progress``, ``iteration``,
            ``checkpoint``) and ending with ``outcome``. SIGUSR1 asks it to cancel, SIGTERM to stop
@@ -157,6 +158,7 @@ def probe(start: dict, out) -> None:
         "write": {folder: attempt(lambda f=folder: write(f)) for folder in start.get("write", [])},
         "connect": {f"{h}:{p}": attempt(lambda h=h, p=p: connect(h, int(p))) for h, p in start.get("connect", [])},
         "list": {folder: attempt(lambda f=folder: sorted(os.listdir(f))) for folder in start.get("list", [])},
+        "read": {file: attempt(lambda f=file: Path(f).read_text()[:100]) for file in start.get("read", [])},
         "unmount": {folder: attempt(lambda f=folder: unmount(f)) for folder in start.get("unmount", [])},
         "uid": os.getuid(), "capabilities": capabilities(), "cwd_writable": attempt(lambda: write(".")),
     })

@@ -68,11 +68,12 @@ class ChildLimits:
 def hidden(limits: ChildLimits, cwd: Path) -> list[str]:
     """What a sandboxed child must not see: the store folder (``NDRF_STORE``, when a folder), the
     folder holding its work folder (the other jobs' scratch folders, the other uploads being
-    checked) and ``limits.hide``."""
+    checked), ``NDRF_SANDBOX_HIDE`` and ``limits.hide``."""
     from services.settings import get_settings
 
-    store = get_settings().store
-    folders = [str(cwd.resolve().parent), *limits.hide]
+    settings = get_settings()
+    store = settings.store
+    folders = [str(cwd.resolve().parent), *settings.sandbox_hide, *limits.hide]
     if "://" not in store:
         folders.append(str(Path(store).resolve()))
     return folders

@@ -141,6 +141,9 @@ def enter(spec: dict) -> None:
     _mount(libc, "tmpfs", "/dev/shm", "tmpfs", MS_NOSUID | MS_NODEV, f"size={SHM_BYTES},mode=1777")
     hidden = [Path(p).resolve() for p in spec.get("hide", []) if Path(p).is_dir()]
     _kernel_cache(libc, hidden)
+    for file in {Path(p).resolve() for p in spec.get("hide", []) if Path(p).is_file()}:
+        _mount(libc, "/dev/null", str(file), None, MS_BIND)    # a hidden file reads empty
+        _read_only(libc, str(file))
     for folder in hidden:                                      # 3. cover the store and the scratch root
         _mount(libc, "tmpfs", str(folder), "tmpfs", MS_NOSUID | MS_NODEV | MS_NOEXEC, "size=64k,mode=755")
         if _inside(work, folder):
