@@ -79,6 +79,15 @@ def hidden(limits: ChildLimits, cwd: Path) -> list[str]:
     return folders
 
 
+def sandbox_state() -> str:
+    """How children start here, for the start-up log line of a worker (``NDRF_SANDBOX=required``
+    on a machine without namespaces raises :class:`services.jobs.sandbox.SandboxUnavailable`)."""
+    from services.settings import get_settings
+
+    prefix = sandbox.command_prefix(get_settings().sandbox)
+    return "namespaces (" + " ".join(prefix[1:-1]) + ")" if prefix else "NONE (see the error above)"
+
+
 def _command(mode: str, limits: ChildLimits, cwd: Path) -> list[str]:
     """The child's command line: through ``unshare`` when the sandbox is on (``NDRF_SANDBOX``)."""
     from services.settings import get_settings
