@@ -175,7 +175,8 @@ def test_a_sandboxed_child_cannot_write_the_store_nor_reach_redis(tmp_path, redi
     secret.write_text("aws_secret_access_key = k")
     monkeypatch.setenv("NDRF_SANDBOX_HIDE", str(secret))
     get_settings.cache_clear()
-    hidden = _probe(tmp_path, {**start, "read": [str(secret)]}, hide=(str(store),))  # ... hidden (NDRF_STORE's)
+    nested = str(tmp_path / "scratch" / "job-2")                  # inside the hidden scratch root: no error
+    hidden = _probe(tmp_path, {**start, "read": [str(secret)]}, hide=(str(store), nested))  # ... hidden too
     assert hidden["list"][str(store)] == "ok: []", hidden
     assert hidden["write"][str(store)].startswith("refused"), hidden
     assert hidden["read"][str(secret)] == "ok: ", hidden       # NDRF_SANDBOX_HIDE: reads empty

@@ -42,7 +42,7 @@ ROOT_FLAGS = ("--net", "--mount", "--ipc", "--propagation", "private")
 USER_FLAGS = ("--user", "--map-root-user", *ROOT_FLAGS)
 SHM_BYTES = 256 << 20  # the private /dev/shm (with the child's additions to the kernel cache)
 
-MS_RDONLY, MS_NOSUID, MS_NODEV, MS_NOEXEC, MS_REMOUNT, MS_BIND = 1, 2, 4, 8, 32, 4096
+MS_RDONLY, MS_NOSUID, MS_NODEV, MS_NOEXEC, MS_REMOUNT, MS_BIND, MS_REC = 1, 2, 4, 8, 32, 4096, 16384
 #: statvfs flags that a bind remount must repeat (those of the mount, locked in a user namespace).
 _KEPT = MS_NOSUID | MS_NODEV | MS_NOEXEC | 16 | 64 | 1024 | 2048 | 4096
 #: Pseudo filesystems whose mounts may refuse a read-only remount (what they expose is guarded
@@ -139,7 +139,11 @@ def enter(spec: dict) -> None:
                 raise
     # 2. a private /dev/shm, also holding the writes of the kernel cache's overlay
     _mount(libc, "tmpfs", "/dev/shm", "tmpfs", MS_NOSUID | MS_NODEV, f"size={SHM_BYTES},mode=1777")
-    hidden = [Path(p).resolve() for p in spec.get("hide", []) if Path(p).is_dir()]
+    folders = sorted({Path(p).resolve() for p in spec.get("hide", []) if Path(p).is_dir()}, key=lambda p: len(p.parts))
+    hidden: list[Path] = []
+    for folder in folders:                                     # the outermost (the others are inside)
+        if not any(_inside(folder, outer) for outer in hidden):
+            hidden.append(folder)
     _kernel_cache(libc, hidden)
     for file in {Path(p).resolve() for p in spec.get("hide", []) if Path(p).is_file()}:
         _mount(libc, "/dev/null", str(file), None, MS_BIND)    # a hidden file reads empty
@@ -150,7 +154,7 @@ def enter(spec: dict) -> None:
             (folder / work.relative_to(folder)).mkdir(parents=True, exist_ok=True)
         _mount(libc, None, str(folder), None, MS_REMOUNT | MS_RDONLY | MS_NOSUID | MS_NODEV | MS_NOEXEC)
     # 4. the work folder, bound back writable (from the process's own reference to it)
-    _mount(libc, "/proc/self/cwd", str(work), None, MS_BIND)
+    _mount(libc, "/proc/self/cwd", str(work), None, MS_BIND | MS_REC)  # with what is mounted inside
     kept = os.statvfs(work).f_flag & _KEPT                     # a user namespace locks them
     _mount(libc, None, str(work), None, MS_REMOUNT | MS_BIND | MS_NOSUID | MS_NODEV | kept)
     os.chdir(work)                                             # onto the writable mount
