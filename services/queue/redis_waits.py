@@ -30,8 +30,8 @@ log = logging.getLogger(__name__)
 
 #: How long a command waits for a free connection of the pool before it fails.
 POOL_WAIT_SECONDS = 1.0
-#: The longest ``XREAD BLOCK`` of the multiplexed wait (a stream that joins without its wake-up
-#: waits at most this long before it is in the read).
+#: The longest ``XREAD BLOCK`` of the multiplexed wait (a stream whose wake-up failed waits at most
+#: this long before it is in the read; it misses nothing: the read starts after its last id).
 BLOCK_SECONDS = 5.0
 WAKE = "ndrf:wake:{}"
 REDIS_ERRORS = (redis.RedisError, OSError, TimeoutError)
@@ -81,6 +81,7 @@ class StreamWaits:
         self.client = redis.asyncio.Redis(connection_pool=pool)
         self.block_seconds = block_seconds
         self.wake = WAKE.format(uuid.uuid4().hex)
+        self.wake_id = "0-0"  # a private stream: from its start, so that no wake-up is ever missed
         self.waiters: dict[str, set[asyncio.Future]] = {}
         self.ids: dict[str, str] = {}
         self.task: asyncio.Task | None = None
@@ -126,7 +127,7 @@ class StreamWaits:
 
     async def _run(self) -> None:
         while self.waiters:
-            streams: dict[Any, Any] = {self.wake: "$", **self.ids}
+            streams: dict[Any, Any] = {self.wake: self.wake_id, **self.ids}
             try:
                 reply = await asyncio.wait_for(self.client.xread(streams, block=int(self.block_seconds * 1000)),
                                                self.block_seconds + 10)
@@ -137,7 +138,9 @@ class StreamWaits:
                 await asyncio.sleep(1.0)
                 continue
             for stream, entries in _streams(reply):
-                if stream != self.wake and entries:
+                if stream == self.wake and entries:
+                    self.wake_id = str(entries[-1][0])
+                elif entries:
                     self._wake(stream)
 
     async def aclose(self) -> None:
