@@ -134,6 +134,8 @@ def enter(spec: dict) -> None:
     for point in _mount_points():                              # 1. every mount read-only
         try:
             _read_only(libc, point)
+        except FileNotFoundError:  # under a mount that covers it: not reachable by any path
+            continue
         except OSError:
             if not point.startswith(_PSEUDO):
                 raise
@@ -184,8 +186,11 @@ def _kernel_cache(libc: ctypes.CDLL, hidden: list[Path]) -> None:
     upper, work = Path("/dev/shm/drjit-upper"), Path("/dev/shm/drjit-work")
     upper.mkdir()
     work.mkdir()
-    _mount(libc, "overlay", str(cache), "overlay", MS_NOSUID | MS_NODEV,
-           f"lowerdir={cache},upperdir={upper},workdir={work}")
+    try:
+        _mount(libc, "overlay", str(cache), "overlay", MS_NOSUID | MS_NODEV,
+               f"lowerdir={cache},upperdir={upper},workdir={work}")
+    except OSError:  # no overlayfs (or not in a user namespace on this kernel): an empty cache of its own
+        os.environ["DRJIT_CACHE_DIR"] = "/dev/shm/drjit-cache"
 
 
 def _drop_privileges(libc: ctypes.CDLL) -> None:
