@@ -52,10 +52,21 @@ def _check_start(tmp_path, ply_body: bytes):
 def test_a_loader_crash_is_described_with_the_file_it_was_reading(tmp_path):
     """The PLY header overflow of issue 13, given to Mitsuba directly (no Python check before it):
     the child dies by a signal and the parent names it and the file."""
+    # Whether the overflowed reads crash depends on the heap's layout: most runs do, some read to
+    # the end of the file first and report it cleanly ("read 11136 out of 12288 bytes"), about one
+    # in three in the sandbox (whose set-up moves the heap), none in 15 runs without it. So: the
+    # clean report is accepted, and the crash must come within a few attempts.
     start = _check_start(tmp_path, struct.pack("<3f", 0, 0, 0) * 4000)
-    with pytest.raises(ChildFailed) as failed:
-        exchange("check", start, ChildLimits(wall_seconds=60), tmp_path, "the scene loader")
-    message = str(failed.value)
+    for _ in range(10):
+        try:
+            kind, meta = exchange("check", start, ChildLimits(wall_seconds=60), tmp_path, "the scene loader")
+        except ChildFailed as exc:
+            failed = exc
+            break
+        assert kind == "invalid" and "m.ply" in meta["message"] and "out of" in meta["message"], meta
+    else:
+        pytest.fail("the overflowing PLY never crashed the loader in 10 attempts")
+    message = str(failed)
     assert message.startswith("the scene loader crashed (SIG") and message.endswith("reading m.ply"), message
 
 
