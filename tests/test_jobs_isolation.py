@@ -184,10 +184,16 @@ def test_a_sandboxed_child_cannot_write_the_store_nor_reach_redis(tmp_path, redi
     assert seen["capabilities"] == "0" and seen["cwd_writable"].startswith("ok"), seen
     secret = tmp_path / "credentials"
     secret.write_text("aws_secret_access_key = k")
-    monkeypatch.setenv("NDRF_SANDBOX_HIDE", str(secret))
+    unix = socket.socket(socket.AF_UNIX)                          # Redis on a Unix socket: a read-only
+    unix.bind(str(tmp_path / "redis.sock"))                       # mount does not stop connect()
+    unix.listen(1)
+    monkeypatch.setenv("NDRF_SANDBOX_HIDE", f"{secret},{tmp_path / 'redis.sock'}")
     get_settings.cache_clear()
     nested = str(tmp_path / "scratch" / "job-2")                  # inside the hidden scratch root: no error
-    hidden = _probe(tmp_path, {**start, "read": [str(secret)]}, hide=(str(store), nested))  # ... hidden too
+    hidden = _probe(tmp_path, {**start, "read": [str(secret)], "connect": [[str(tmp_path / "redis.sock"), 0]]},
+                    hide=(str(store), nested))                    # ... hidden too
+    unix.close()
+    assert hidden["connect"][f"{tmp_path / 'redis.sock'}:0"].startswith("refused"), hidden
     assert hidden["list"][str(store)] == "ok: []", hidden
     assert hidden["write"][str(store)].startswith("refused"), hidden
     assert hidden["read"][str(secret)] == "ok: ", hidden       # NDRF_SANDBOX_HIDE: reads empty

@@ -6,7 +6,8 @@
               answers ``checked`` {report} or ``invalid`` {field, message}
 ``describe``  load a scene and list its optimizable parameters and films: ``described`` {scene}
 ``probe``     what the sandbox lets a child do, for the tests and an operator's check: tries to
-              create a file in each ``write`` folder, to connect to each ``connect`` address, to
+              create a file in each ``write`` folder, to connect to each ``connect`` address (host
+              and port, or a Unix socket's path and 0), to
               list each ``list`` folder, to read each ``read`` file and to unmount each ``unmount``
               folder; answers ``probed`` {write, connect, list, read, unmount, uid, capabilities,
               cwd_writable}
@@ -151,6 +152,10 @@ def probe(start: dict, out) -> None:
         return f"unmounted {folder}"
 
     def connect(host: str, port: int) -> str:
+        if host.startswith("/"):  # a Unix socket
+            with socket.socket(socket.AF_UNIX) as unix:
+                unix.connect(host)
+                return f"connected to {host}"
         with socket.create_connection((host, port), timeout=2):
             return f"connected to {host}:{port}"
 

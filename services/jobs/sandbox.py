@@ -9,8 +9,9 @@ the child needs neither. Set up in two halves:
   inside, when the service does not run as root: creating the others needs it then). The new
   network namespace has only a loopback interface, down: no route to Redis, to S3, to anything.
 * child (:func:`enter`, before it reads anything untrusted): every mount is remounted read-only;
-  the store folder and the folder holding the child's work folder (other jobs' scratch folders,
-  other uploads being checked) are covered by empty read-only tmpfs; the work folder alone is
+  the store folder, the folder holding the child's work folder (other jobs' scratch folders,
+  other uploads being checked) and ``/run`` (Unix sockets: Redis's, Docker's) are covered by
+  empty read-only tmpfs; the work folder alone is
   bound back, writable; ``/dev/shm`` is a private tmpfs, and the Dr.Jit kernel cache an overlay
   whose writes land there (the child reuses cached kernels; what it adds is thrown away with it,
   so it cannot plant code another child would run). Then it drops every capability and sets
@@ -40,6 +41,9 @@ log = logging.getLogger(__name__)
 #: namespace first, which makes it root inside, over these namespaces only).
 ROOT_FLAGS = ("--net", "--mount", "--ipc", "--propagation", "private")
 USER_FLAGS = ("--user", "--map-root-user", *ROOT_FLAGS)
+#: Always hidden: where Unix sockets live (Redis's, Docker's, D-Bus's). A read-only mount does not
+#: stop a connect() to a socket file, and a network namespace only cuts the abstract ones.
+SOCKET_FOLDERS = ("/run", "/var/run")
 SHM_BYTES = 256 << 20  # the private /dev/shm (with the child's additions to the kernel cache)
 
 MS_RDONLY, MS_NOSUID, MS_NODEV, MS_NOEXEC, MS_REMOUNT, MS_BIND, MS_REC = 1, 2, 4, 8, 32, 4096, 16384
@@ -141,14 +145,15 @@ def enter(spec: dict) -> None:
                 raise
     # 2. a private /dev/shm, also holding the writes of the kernel cache's overlay
     _mount(libc, "tmpfs", "/dev/shm", "tmpfs", MS_NOSUID | MS_NODEV, f"size={SHM_BYTES},mode=1777")
-    folders = sorted({Path(p).resolve() for p in spec.get("hide", []) if Path(p).is_dir()}, key=lambda p: len(p.parts))
+    folders = sorted({Path(p).resolve() for p in (*spec.get("hide", []), *SOCKET_FOLDERS) if Path(p).is_dir()},
+                     key=lambda p: len(p.parts))
     hidden: list[Path] = []
     for folder in folders:                                     # the outermost (the others are inside)
         if not any(_inside(folder, outer) for outer in hidden):
             hidden.append(folder)
     _kernel_cache(libc, hidden)
-    for file in {Path(p).resolve() for p in spec.get("hide", []) if Path(p).is_file()}:
-        _mount(libc, "/dev/null", str(file), None, MS_BIND)    # a hidden file reads empty
+    for file in {Path(p).resolve() for p in spec.get("hide", []) if Path(p).exists() and not Path(p).is_dir()}:
+        _mount(libc, "/dev/null", str(file), None, MS_BIND)    # a file reads empty, a socket refuses
         _read_only(libc, str(file))
     for folder in hidden:                                      # 3. cover the store and the scratch root
         _mount(libc, "tmpfs", str(folder), "tmpfs", MS_NOSUID | MS_NODEV | MS_NOEXEC, "size=64k,mode=755")
