@@ -234,3 +234,20 @@ def test_required_sandbox_refuses_to_start_a_child_where_namespaces_fail(tmp_pat
     finally:
         sandbox.command_prefix.cache_clear()
         get_settings.cache_clear()
+
+
+def test_a_sandboxed_run_keeps_kernels_in_its_keys_own_cache(tmp_path, sandbox_on):
+    """Dr.Jit's kernel cache of a run is the folder of its job's key (kept across its jobs, writable),
+    not the shared cache: what one key's child compiles (or plants) no other key's child loads."""
+    kernels = tmp_path / "scratch" / "kernels"
+    (kernels / "key-a").mkdir(parents=True)
+    (kernels / "key-b").mkdir()
+    (kernels / "key-b" / "kernel.bin").write_text("b's")
+    work = tmp_path / "scratch" / "job-1"
+    work.mkdir()
+    kind, seen = exchange("probe", {"write": ["/dev/shm/drjit-cache"], "list": [str(kernels)]},
+                          ChildLimits(wall_seconds=60, kernel_cache=str(kernels / "key-a")), work, "the probe")
+    assert seen["write"]["/dev/shm/drjit-cache"].startswith("ok"), seen
+    assert seen["list"][str(kernels)].startswith("refused"), seen          # under the hidden scratch root
+    assert len(list((kernels / "key-a").iterdir())) == 1                    # kept by the parent
+    assert [p.name for p in (kernels / "key-b").iterdir()] == ["kernel.bin"]

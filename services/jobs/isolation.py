@@ -30,6 +30,7 @@ import logging
 import os
 import re
 import resource
+import shutil
 import signal
 import subprocess
 import sys
@@ -63,6 +64,9 @@ class ChildLimits:
     #: Folders covered by an empty read-only tmpfs in the child, besides the store folder of the
     #: settings and the folder holding the child's work folder (:func:`hidden`).
     hide: tuple[str, ...] = ()
+    #: A writable folder for the child's Dr.Jit kernel cache, shared by the jobs of one API key
+    #: only (None: the shared cache, read-only, with a private overlay).
+    kernel_cache: str | None = None
 
 
 def hidden(limits: ChildLimits, cwd: Path) -> list[str]:
@@ -77,6 +81,44 @@ def hidden(limits: ChildLimits, cwd: Path) -> list[str]:
     if "://" not in store:
         folders.append(str(Path(store).resolve()))
     return folders
+
+
+#: The shared kernel cache is copied into a key's new cache folder up to this size (larger: the
+#: key's jobs compile their kernels once themselves).
+SEED_BYTES = 256 << 20
+
+
+def kernel_cache(scratch: Path, owner: str) -> Path:
+    """The Dr.Jit kernel cache folder of one API key's sandboxed runs (created on first use as a
+    *copy* of the shared cache, so that a key starts warm and what its children add or alter
+    never reaches the shared cache, nor any other key's children)."""
+    folder = scratch / "kernels" / re.sub(r"[^0-9A-Za-z_-]", "_", owner)
+    if folder.is_dir():
+        return folder
+    shared = Path(os.environ.get("DRJIT_CACHE_DIR") or Path.home() / ".drjit")
+    staging = folder.with_name(f".{folder.name}-{os.getpid()}-{threading.get_ident()}")
+    staging.mkdir(parents=True, exist_ok=True)
+    try:
+        files = [f for f in shared.iterdir() if f.is_file()] if shared.is_dir() else []
+        if sum(f.stat().st_size for f in files) <= SEED_BYTES:
+            for file in files:
+                shutil.copyfile(file, staging / file.name)
+        staging.rename(folder)
+    except OSError as exc:  # another worker made it meanwhile, or the copy failed: an empty cache
+        log.debug("kernel cache of %s: %s", owner, exc)
+        shutil.rmtree(staging, ignore_errors=True)
+        folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def sandboxed() -> bool:
+    """Whether children start in namespaces here (``NDRF_SANDBOX`` and what the machine allows)."""
+    from services.settings import get_settings
+
+    try:
+        return bool(sandbox.command_prefix(get_settings().sandbox))
+    except sandbox.SandboxUnavailable:
+        return False
 
 
 def sandbox_state() -> str:
@@ -94,7 +136,7 @@ def _command(mode: str, limits: ChildLimits, cwd: Path) -> list[str]:
 
     prefix = sandbox.command_prefix(get_settings().sandbox)
     spec = {**asdict(limits), "sandbox": {"namespaces": bool(prefix), "hide": hidden(limits, cwd),
-                                          "parent_ns": sandbox.namespaces()}}
+                                          "parent_ns": sandbox.namespaces(), "kernel_cache": limits.kernel_cache}}
     return [*prefix, sys.executable, "-m", "services.jobs.child", mode, json.dumps(spec)]
 
 

@@ -11,11 +11,12 @@ the child needs neither. Set up in two halves:
 * child (:func:`enter`, before it reads anything untrusted): every mount is remounted read-only;
   the store folder, the folder holding the child's work folder (other jobs' scratch folders,
   other uploads being checked) and ``/run`` (Unix sockets: Redis's, Docker's) are covered by
-  empty read-only tmpfs; the work folder alone is
-  bound back, writable; ``/dev/shm`` is a private tmpfs, and the Dr.Jit kernel cache an overlay
-  whose writes land there (the child reuses cached kernels; what it adds is thrown away with it,
-  so it cannot plant code another child would run). Then it drops every capability and sets
-  ``no_new_privs``: it cannot undo a mount, nor gain privileges by running a set-uid program.
+  empty read-only tmpfs; the work folder alone is bound back, writable; ``/dev/shm`` is a private
+  tmpfs; Dr.Jit's kernel cache is the folder of the job's API key (a run: the key's jobs reuse
+  their kernels), or an overlay on the shared cache whose writes land in ``/dev/shm`` (a scene
+  check): a child cannot plant code that another key's child would run. Then it drops every
+  capability and sets ``no_new_privs``: it cannot undo a mount, nor gain privileges by running a
+  set-uid program.
 
 ``NDRF_SANDBOX`` (:class:`services.settings.Settings`) chooses: ``auto`` (the default) uses the
 namespaces where ``unshare`` works and otherwise runs children *without* them, logging an
@@ -151,7 +152,7 @@ def enter(spec: dict) -> None:
     for folder in folders:                                     # the outermost (the others are inside)
         if not any(_inside(folder, outer) for outer in hidden):
             hidden.append(folder)
-    _kernel_cache(libc, hidden)
+    _kernel_cache(libc, hidden, spec.get("kernel_cache"))
     for file in {Path(p).resolve() for p in spec.get("hide", []) if Path(p).exists() and not Path(p).is_dir()}:
         _mount(libc, "/dev/null", str(file), None, MS_BIND)    # a file reads empty, a socket refuses
         _read_only(libc, str(file))
@@ -182,8 +183,19 @@ def _check_namespaces(parent: dict[str, str]) -> None:
             raise RuntimeError(f"the sandbox expected a {kind} namespace of its own and has its parent's")
 
 
-def _kernel_cache(libc: ctypes.CDLL, hidden: list[Path]) -> None:
-    """Dr.Jit's kernel cache as an overlay: cached kernels read, new ones kept in /dev/shm."""
+def _kernel_cache(libc: ctypes.CDLL, hidden: list[Path], own: str | None) -> None:
+    """Dr.Jit's kernel cache. ``own`` (a job's: one folder per API key, kept by the parent): that
+    folder, bound writable, so a key's jobs reuse the kernels its earlier jobs compiled and no other
+    key's child ever loads them. Otherwise an overlay on the shared cache: cached kernels are read,
+    new ones kept in /dev/shm and thrown away with the child."""
+    if own:  # seen at /dev/shm/drjit-cache: its own path may be under a folder hidden next
+        seen = Path("/dev/shm/drjit-cache")
+        seen.mkdir()
+        _mount(libc, str(Path(own).resolve()), str(seen), None, MS_BIND | MS_REC)
+        kept = os.statvfs(seen).f_flag & _KEPT
+        _mount(libc, None, str(seen), None, MS_REMOUNT | MS_BIND | MS_NOSUID | MS_NODEV | MS_NOEXEC | kept)
+        os.environ["DRJIT_CACHE_DIR"] = str(seen)
+        return
     cache = Path(os.environ.get("DRJIT_CACHE_DIR") or Path.home() / ".drjit").resolve()
     if not cache.is_dir() or any(_inside(cache, folder) for folder in hidden):
         os.environ["DRJIT_CACHE_DIR"] = "/dev/shm/drjit-cache"  # an empty cache of its own
