@@ -13,12 +13,16 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 import anyio
 
+from api.problems import ProblemError
 from schemas.records import FINISHED
+from services.jobs.service import Caller
+from services.queue.base import SlotsUnavailable
 from services.runtime import Runtime
 
 log = logging.getLogger(__name__)
@@ -30,10 +34,64 @@ WAKE_SECONDS = 15.0
 STORE_READERS = 8
 
 END = None  # put in the subscribers' queues when the job's final event was sent
+#: ``Retry-After`` of a stream refused for the cap (429) or because the count cannot be read (503).
+RETRY_SECONDS = 5
+#: The owner id :func:`api.deps.reader_of` gives a read-token caller: ``token:<resource id>``.
+TOKEN_OWNER = "token:"
 
 
 def finishes(event: dict) -> bool:
     return event.get("type") == "status" and event.get("status") in FINISHED
+
+
+def counted_owner(caller: Caller, resource_owner: str) -> str:
+    """The key a stream counts against. A bearer caller's own; a read-token caller's is the owner
+    of the resource the token reads: tokens are only minted for the resource's owner (or an admin,
+    whose reads of a tenant's resource then count against that tenant), so a key cannot multiply its
+    streams by opening them with tokens of its jobs and experiments."""
+    return resource_owner if caller.owner.startswith(TOKEN_OWNER) else caller.owner
+
+
+class StreamSlot:
+    """One open stream's place under its key's cap (``NDRF_MAX_STREAMS_PER_KEY``), counted across
+    every API process (:class:`services.queue.base.StreamSlots`). Guards the cap: over it the stream
+    is refused with 429; when the count cannot be read (Redis away or busy) with 503, never let in
+    uncounted. Both carry ``Retry-After``."""
+
+    def __init__(self, runtime: Runtime, owner: str, slot: str):
+        self.runtime, self.owner, self.slot = runtime, owner, slot
+        self.refreshed = time.monotonic()
+
+    @classmethod
+    async def take(cls, runtime: Runtime, owner: str, what: str = "event streams") -> StreamSlot:
+        slots, cap = runtime.slots, runtime.settings.limits.streams_per_key
+        assert slots is not None
+        retry = {"Retry-After": str(RETRY_SECONDS)}
+        try:
+            slot = await slots.acquire(owner, cap)
+        except SlotsUnavailable:
+            raise ProblemError(503, "Streams unavailable", "the count of open streams cannot be checked now; "
+                                                           "try again shortly", slug="streams-unavailable",
+                               headers=retry) from None
+        if slot is None:
+            raise ProblemError(429, "Too many streams", f"this key already holds {cap} {what} "
+                                                        f"(NDRF_MAX_STREAMS_PER_KEY)", slug="too-many-streams",
+                               headers=retry)
+        return cls(runtime, owner, slot)
+
+    async def keep(self) -> None:
+        """Refresh the slot if a third of its lifetime passed (call on every event or keep-alive)."""
+        slots = self.runtime.slots
+        assert slots is not None
+        if time.monotonic() - self.refreshed > slots.ttl_seconds / 3:
+            self.refreshed = time.monotonic()
+            await slots.refresh(self.owner, self.slot)
+
+    async def release(self) -> None:
+        slots = self.runtime.slots
+        assert slots is not None
+        with anyio.CancelScope(shield=True):
+            await slots.release(self.owner, self.slot)
 
 
 class _Feed:

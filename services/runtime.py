@@ -187,7 +187,7 @@ def build_runtime(settings: Settings) -> Runtime:
         from services.queue.redis_queue import RedisEventBus, RedisJobQueue, RedisStreamSlots, connect
 
         client = connect(settings.redis_url)
-        bus = RedisEventBus(client, settings.redis_url)
+        bus = RedisEventBus(client, settings.redis_url, connections=settings.redis_connections)
         queue: JobQueue = RedisJobQueue(client, settings.lease_seconds)
         runtime = Runtime(settings, store, JobService(store, queue, bus), queue, bus, slots=RedisStreamSlots(bus),
                           redis=client)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import hashlib
 from functools import lru_cache
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import AliasChoices, Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
@@ -133,9 +133,23 @@ class Settings(BaseSettings):
                                                           "worker is failed.")
     embedded_workers: int = Field(1, ge=1, le=16, description="Worker threads of the embedded mode.")
     preflight_workers: int = Field(2, ge=1, le=64, description="Scene loads running at once in the API.")
+    redis_connections: int = Field(32, ge=2, le=1024, description="Redis connections of one API process for short "
+                                                                  "commands (stream slots, event reads); a stream "
+                                                                  "that finds none free within a second is refused "
+                                                                  "with 503. Stream waits use one connection of "
+                                                                  "their own, whatever the number of streams.")
+    sandbox: Literal["auto", "required", "off"] = Field(
+        "auto", description="Namespaces of the sandboxed children (no network, read-only filesystem but their work "
+                            "folder, the store hidden, no capabilities): auto uses them where the machine allows "
+                            "and logs an ERROR where it does not; required refuses to start a child without them; "
+                            "off never uses them (docs/security.md).")
+    sandbox_hide: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="More folders covered by an empty read-only tmpfs in sandboxed children "
+                                          "(comma-separated): credentials or data the service's uid can read and "
+                                          "a child must not (the store folder and the scratch folders always are).")
     limits: Limits = Field(default_factory=Limits)
 
-    @field_validator("api_keys", "admin_keys", mode="before")
+    @field_validator("api_keys", "admin_keys", "sandbox_hide", mode="before")
     @classmethod
     def _split(cls, value):
         if isinstance(value, str):

@@ -25,6 +25,7 @@ from pathlib import Path
 
 from schemas.outcomes import Outcome
 from schemas.records import ACTIVE, JobStatus
+from services.jobs.isolation import sandbox_state
 from services.jobs.runner import AttemptResult, AttemptRunner
 from services.jobs.service import JobService
 from services.jobs.state import Conflict, Fenced, UnknownJob
@@ -55,7 +56,7 @@ class Worker:
         if install_signals:
             for sig in (signal.SIGTERM, signal.SIGINT):
                 signal.signal(sig, lambda *_: self.request_stop())
-        log.info("worker %s started", self.name)
+        log.info("worker %s started; child sandbox: %s", self.name, sandbox_state())
         reason = "stopped"
         try:
             while not self.stopping.is_set():

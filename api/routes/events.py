@@ -7,29 +7,28 @@ event log in the store, then live events from this process's feed of the job (:m
 one bus wait and one store read per job, whatever the number of clients). Nothing here holds a
 thread while it waits. The stream ends after the event that finishes the job.
 
-A key may hold ``NDRF_MAX_STREAMS_PER_KEY`` streams at once (429), counted across every API process
-that shares the Redis (:class:`services.queue.base.StreamSlots`).
+A key may hold ``NDRF_MAX_STREAMS_PER_KEY`` streams at once (429; 503 when the count cannot be read),
+counted across every API process that shares the Redis, job and experiment streams together, those
+opened with its read tokens included (:class:`api.streams.StreamSlot`).
 """
 
 from __future__ import annotations
 
 import asyncio
 import json
-import time
 from typing import Annotated
 
-import anyio
 from fastapi import APIRouter, Header, Query, Request
 from fastapi.responses import StreamingResponse
 
 from api.bodies import GuardedRoute
-from api.deps import ReaderDep, RuntimeDep, files_or_404
-from api.problems import ProblemDetails, ProblemError
-from api.streams import END, StreamHub, finishes
+from api.deps import ReaderDep, RuntimeDep, record_or_404
+from api.problems import ProblemDetails
+from api.streams import END, StreamHub, StreamSlot, counted_owner, finishes
 
 router = APIRouter(route_class=GuardedRoute, prefix="/v1/jobs/{job_id}", tags=["events"],
                    responses={401: {"model": ProblemDetails}, 404: {"model": ProblemDetails},
-                              429: {"model": ProblemDetails}})
+                              429: {"model": ProblemDetails}, 503: {"model": ProblemDetails}})
 
 KEEPALIVE_SECONDS = 15.0
 
@@ -43,18 +42,12 @@ async def job_events(job_id: str, request: Request, runtime: RuntimeDep, caller:
                      last_event_id: Annotated[str | None, Header(alias="Last-Event-ID", pattern=r"^\d{1,12}$")] = None,
                      after: Annotated[int | None, Query(ge=0, description="Replay events after this id.")] = None):
     hub: StreamHub = request.app.state.streams
-    await hub.blocking(files_or_404, runtime, job_id, caller)
+    record = await hub.blocking(record_or_404, runtime, job_id, caller)
     start = int(last_event_id) if last_event_id is not None else (after or 0)
-    owner, cap, slots = caller.owner, runtime.settings.limits.streams_per_key, runtime.slots
-    assert slots is not None
-    slot = await slots.acquire(owner, cap)
-    if slot is None:
-        raise ProblemError(429, "Too many streams", f"this key already holds {cap} event streams "
-                                                    f"(NDRF_MAX_STREAMS_PER_KEY)",
-                           slug="too-many-streams", headers={"Retry-After": "5"})
+    slot = await StreamSlot.take(runtime, counted_owner(caller, record.owner))
 
     async def stream():
-        sent, refreshed = start, time.monotonic()
+        sent = start
         try:
             yield "retry: 2000\n\n"
             async with hub.subscribe(job_id) as queue:
@@ -76,12 +69,9 @@ async def job_events(job_id: str, request: Request, runtime: RuntimeDep, caller:
                         if event["seq"] > sent:
                             sent = event["seq"]
                             yield sse(event)
-                    if time.monotonic() - refreshed > slots.ttl_seconds / 3:
-                        refreshed = time.monotonic()
-                        await slots.refresh(owner, slot)
+                    await slot.keep()
         finally:
-            with anyio.CancelScope(shield=True):
-                await slots.release(owner, slot)
+            await slot.release()
 
     return StreamingResponse(stream(), media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})

@@ -9,8 +9,6 @@ routes of one experiment accept ``?token=`` with its read token (EventSource, do
 from __future__ import annotations
 
 import json
-import threading
-from collections import Counter
 from typing import Annotated
 
 import anyio
@@ -21,6 +19,7 @@ from api import tokens
 from api.bodies import GuardedRoute
 from api.deps import RuntimeDep, SettingsDep, may_mint_token, reader_of, require_caller
 from api.problems import ProblemDetails, ProblemError
+from api.streams import StreamHub, StreamSlot, counted_owner
 from schemas.experiments import (
     Curves,
     ExperimentAccepted,
@@ -216,29 +215,9 @@ async def append_runs(exp_id: str, more: ExperimentAppend, response: Response, r
     return _accepted(response, record, added)
 
 
-class _Streams:
-    def __init__(self):
-        self.open: Counter[str] = Counter()
-        self.lock = threading.Lock()
-
-    def acquire(self, owner: str, cap: int) -> bool:
-        with self.lock:
-            if self.open[owner] >= cap:
-                return False
-            self.open[owner] += 1
-            return True
-
-    def release(self, owner: str) -> None:
-        with self.lock:
-            self.open[owner] -= 1
-
-
-STREAMS = _Streams()
-
-
 @router.get("/{exp_id}/events", summary="Event stream (SSE)",
             responses={200: {"content": {"text/event-stream": {}}}, 404: {"model": ProblemDetails},
-                       429: {"model": ProblemDetails}})
+                       429: {"model": ProblemDetails}, 503: {"model": ProblemDetails}})
 async def experiment_events(exp_id: str, request: Request, runtime: RuntimeDep, caller: ReaderDep,
                             last_event_id: Annotated[str | None, Header(alias="Last-Event-ID",
                                                                         pattern=r"^\d{1,12}$")] = None,
@@ -247,14 +226,11 @@ async def experiment_events(exp_id: str, request: Request, runtime: RuntimeDep, 
     """``status`` (the experiment's), ``run`` (a run queued, running, finished: index, job,
     status), ``retry``, ``appended``, ``canceled``. Every event's SSE id is its sequence number;
     ``Last-Event-ID`` replays what was missed. The stream ends when the experiment finishes."""
-    _record(runtime, exp_id, caller)
+    hub: StreamHub = request.app.state.streams
+    record = await hub.blocking(_record, runtime, exp_id, caller)
     states = runtime.experiments.states
     start = int(last_event_id) if last_event_id is not None else (after or 0)
-    cap = runtime.settings.limits.streams_per_key
-    if not STREAMS.acquire(caller.owner, cap):
-        raise ProblemError(429, "Too many streams", f"this key already holds {cap} experiment event streams "
-                                                    f"(NDRF_MAX_STREAMS_PER_KEY)", slug="too-many-streams",
-                           headers={"Retry-After": "5"})
+    slot = await StreamSlot.take(runtime, counted_owner(caller, record.owner), "event streams")
 
     def finished() -> bool:
         return states.get(exp_id).status.finished
@@ -264,7 +240,7 @@ async def experiment_events(exp_id: str, request: Request, runtime: RuntimeDep, 
         try:
             yield "retry: 2000\n\n"
             while not await request.is_disconnected():
-                events, cursor = await anyio.to_thread.run_sync(states.read_events, exp_id, sent, cursor)
+                events, cursor = await hub.blocking(states.read_events, exp_id, sent, cursor)
                 ended = False
                 for event in events:
                     if event.get("seq", 0) <= sent:
@@ -272,12 +248,13 @@ async def experiment_events(exp_id: str, request: Request, runtime: RuntimeDep, 
                     sent = event["seq"]
                     yield f"id: {sent}\nevent: {event['type']}\ndata: {json.dumps(event, separators=(',', ':'))}\n\n"
                     ended = ended or (event.get("type") == "status" and event.get("status") in FINAL)
-                if (ended or not events) and await anyio.to_thread.run_sync(finished):
+                if (ended or not events) and await hub.blocking(finished):
                     return
                 if not await runtime.events.wait_async(exp_id, sent, KEEPALIVE_SECONDS):
                     yield ": keep-alive\n\n"
+                await slot.keep()
         finally:
-            STREAMS.release(caller.owner)
+            await slot.release()
 
     return StreamingResponse(stream(), media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})

@@ -5,6 +5,12 @@
 ``check``     load the job's scene and check everything but rendering (the API's preflight):
               answers ``checked`` {report} or ``invalid`` {field, message}
 ``describe``  load a scene and list its optimizable parameters and films: ``described`` {scene}
+``probe``     what the sandbox lets a child do, for the tests and an operator's check: tries to
+              create a file in each ``write`` folder, to connect to each ``connect`` address (host
+              and port, or a Unix socket's path and 0), to
+              list each ``list`` folder, to read each ``read`` file and to unmount each ``unmount``
+              folder; answers ``probed`` {write, connect, list, read, unmount, uid, capabilities,
+              cwd_writable}
 ``run``       run the job (:class:`services.solver.optimize.loop.InverseRenderingRun`), forwarding
            every report as a frame (``plan``, ``targets``, ``progress``, ``iteration``,
            ``checkpoint``) and ending with ``outcome``. SIGUSR1 asks it to cancel, SIGTERM to stop
@@ -119,6 +125,50 @@ def describe(start: dict, out) -> None:
     write_frame(out, "described", {"scene": {"parameters": parameters, "sensors": sensors}})
 
 
+def probe(start: dict, out) -> None:
+    import os
+    import socket
+    import uuid
+
+    from services.jobs.sandbox import capabilities
+
+    def attempt(action) -> str:
+        try:
+            return f"ok: {action()}"
+        except OSError as exc:
+            return f"refused: {exc.strerror or exc}"
+
+    def write(folder: str) -> str:
+        path = Path(folder) / f"probe-{uuid.uuid4().hex}"
+        path.write_text("written by a sandboxed child")
+        return str(path)
+
+    def unmount(folder: str) -> str:
+        import ctypes
+
+        if ctypes.CDLL("libc.so.6", use_errno=True).umount2(folder.encode(), 2) != 0:  # MNT_DETACH
+            errno = ctypes.get_errno()
+            raise OSError(errno, os.strerror(errno))
+        return f"unmounted {folder}"
+
+    def connect(host: str, port: int) -> str:
+        if host.startswith("/"):  # a Unix socket
+            with socket.socket(socket.AF_UNIX) as unix:
+                unix.connect(host)
+                return f"connected to {host}"
+        with socket.create_connection((host, port), timeout=2):
+            return f"connected to {host}:{port}"
+
+    write_frame(out, "probed", {
+        "write": {folder: attempt(lambda f=folder: write(f)) for folder in start.get("write", [])},
+        "connect": {f"{h}:{p}": attempt(lambda h=h, p=p: connect(h, int(p))) for h, p in start.get("connect", [])},
+        "list": {folder: attempt(lambda f=folder: sorted(os.listdir(f))) for folder in start.get("list", [])},
+        "read": {file: attempt(lambda f=file: Path(f).read_text()[:100]) for file in start.get("read", [])},
+        "unmount": {folder: attempt(lambda f=folder: unmount(f)) for folder in start.get("unmount", [])},
+        "uid": os.getuid(), "capabilities": capabilities(), "cwd_writable": attempt(lambda: write(".")),
+    })
+
+
 def run(start: dict, out) -> None:
     from schemas.job import JobSpec
     from services.solver.backend import use_torch
@@ -161,6 +211,9 @@ def main(argv: list[str]) -> int:
     if frame is None or frame[0] != "start":
         log.error("no start frame")
         return 2
+    if mode == "probe":  # no Mitsuba needed
+        probe(frame[1], out)
+        return 0
     _mitsuba_log_to_stderr()
     {"check": check, "describe": describe, "run": run}[mode](frame[1], out)
     return 0

@@ -7,6 +7,9 @@ scene is only ever loaded in a child process started here (``python -m services.
   file size, no core dumps; a wall-clock deadline enforced by the parent;
 * an environment with nothing secret in it: no API keys, no Redis URL, no cloud credentials
   (the child talks to its parent only, over its stdin/stdout pipes);
+* namespaces of its own where the machine allows (:mod:`services.jobs.sandbox`): no network (no
+  route to Redis), a read-only filesystem but its work folder, the store hidden, no capabilities;
+  where it does not, an ERROR in the log says so and the points here are what holds;
 * its own process group, and ``PR_SET_PDEATHSIG``: it dies with the parent, and the parent kills
   it with everything it started;
 * its parent's priority: a new session is a new scheduler autogroup on Linux, which would
@@ -27,6 +30,7 @@ import logging
 import os
 import re
 import resource
+import shutil
 import signal
 import subprocess
 import sys
@@ -35,6 +39,8 @@ from collections import deque
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import BinaryIO
+
+from services.jobs import sandbox
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +61,83 @@ class ChildLimits:
     wall_seconds: float | None = None
     open_files: int = 512
     file_bytes: int = 2 << 30
+    #: Folders covered by an empty read-only tmpfs in the child, besides the store folder of the
+    #: settings and the folder holding the child's work folder (:func:`hidden`).
+    hide: tuple[str, ...] = ()
+    #: A writable folder for the child's Dr.Jit kernel cache, shared by the jobs of one API key
+    #: only (None: the shared cache, read-only, with a private overlay).
+    kernel_cache: str | None = None
+
+
+def hidden(limits: ChildLimits, cwd: Path) -> list[str]:
+    """What a sandboxed child must not see: the store folder (``NDRF_STORE``, when a folder), the
+    folder holding its work folder (the other jobs' scratch folders, the other uploads being
+    checked), ``NDRF_SANDBOX_HIDE`` and ``limits.hide``."""
+    from services.settings import get_settings
+
+    settings = get_settings()
+    store = settings.store
+    folders = [str(cwd.resolve().parent), *settings.sandbox_hide, *limits.hide]
+    if "://" not in store:
+        folders.append(str(Path(store).resolve()))
+    return folders
+
+
+#: The shared kernel cache is copied into a key's new cache folder up to this size (larger: the
+#: key's jobs compile their kernels once themselves).
+SEED_BYTES = 256 << 20
+
+
+def kernel_cache(scratch: Path, owner: str) -> Path:
+    """The Dr.Jit kernel cache folder of one API key's sandboxed runs (created on first use as a
+    *copy* of the shared cache, so that a key starts warm and what its children add or alter
+    never reaches the shared cache, nor any other key's children)."""
+    folder = scratch / "kernels" / re.sub(r"[^0-9A-Za-z_-]", "_", owner)
+    if folder.is_dir():
+        return folder
+    shared = Path(os.environ.get("DRJIT_CACHE_DIR") or Path.home() / ".drjit")
+    staging = folder.with_name(f".{folder.name}-{os.getpid()}-{threading.get_ident()}")
+    staging.mkdir(parents=True, exist_ok=True)
+    try:
+        files = [f for f in shared.iterdir() if f.is_file()] if shared.is_dir() else []
+        if sum(f.stat().st_size for f in files) <= SEED_BYTES:
+            for file in files:
+                shutil.copyfile(file, staging / file.name)
+        staging.rename(folder)
+    except OSError as exc:  # another worker made it meanwhile, or the copy failed: an empty cache
+        log.debug("kernel cache of %s: %s", owner, exc)
+        shutil.rmtree(staging, ignore_errors=True)
+        folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def sandboxed() -> bool:
+    """Whether children start in namespaces here (``NDRF_SANDBOX`` and what the machine allows)."""
+    from services.settings import get_settings
+
+    try:
+        return bool(sandbox.command_prefix(get_settings().sandbox))
+    except sandbox.SandboxUnavailable:
+        return False
+
+
+def sandbox_state() -> str:
+    """How children start here, for the start-up log line of a worker (``NDRF_SANDBOX=required``
+    on a machine without namespaces raises :class:`services.jobs.sandbox.SandboxUnavailable`)."""
+    from services.settings import get_settings
+
+    prefix = sandbox.command_prefix(get_settings().sandbox)
+    return "namespaces (" + " ".join(prefix[1:-1]) + ")" if prefix else "NONE (see the error above)"
+
+
+def _command(mode: str, limits: ChildLimits, cwd: Path) -> list[str]:
+    """The child's command line: through ``unshare`` when the sandbox is on (``NDRF_SANDBOX``)."""
+    from services.settings import get_settings
+
+    prefix = sandbox.command_prefix(get_settings().sandbox)
+    spec = {**asdict(limits), "sandbox": {"namespaces": bool(prefix), "hide": hidden(limits, cwd),
+                                          "parent_ns": sandbox.namespaces(), "kernel_cache": limits.kernel_cache}}
+    return [*prefix, sys.executable, "-m", "services.jobs.child", mode, json.dumps(spec)]
 
 
 def _environment() -> dict[str, str]:
@@ -82,6 +165,7 @@ def apply_limits(limits: dict) -> None:
     resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
     if limits.get("cpu_seconds") is not None:
         resource.setrlimit(resource.RLIMIT_CPU, (limits["cpu_seconds"], limits["cpu_seconds"] + 5))
+    sandbox.enter(limits.get("sandbox", {}))
 
 
 def keep_priority() -> None:
@@ -108,8 +192,12 @@ class Child:
 
     def __init__(self, mode: str, limits: ChildLimits, cwd: Path, label: str):
         self.limits, self.label = limits, label
+        try:
+            command = _command(mode, limits, cwd)
+        except sandbox.SandboxUnavailable as exc:
+            raise ChildFailed(str(exc)) from None
         self.proc: subprocess.Popen[bytes] = subprocess.Popen(
-            [sys.executable, "-m", "services.jobs.child", mode, json.dumps(asdict(limits))], cwd=cwd,
+            command, cwd=cwd,
             env=_environment(), stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
             start_new_session=True, close_fds=True)
         self.stdin, self.stdout = self.proc.stdin, self.proc.stdout  # type: ignore[assignment]

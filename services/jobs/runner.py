@@ -32,7 +32,7 @@ from schemas.outcomes import Outcome
 from schemas.records import IterationRecord, JobStatus
 from services.jobs.artifacts import BudgetExceeded, JobWriter
 from services.jobs.frames import FrameError, array_from, read_frame, write_frame
-from services.jobs.isolation import Child, ChildLimits
+from services.jobs.isolation import Child, ChildFailed, ChildLimits, kernel_cache, sandboxed
 from services.jobs.preflight import upload_limits
 from services.jobs.state import Fenced, JobStates
 from services.settings import Limits
@@ -89,8 +89,13 @@ class AttemptRunner:
         if resume is not None:
             resume_file = folder / "resume.pt"
             resume_file.write_bytes(resume)
-        limits = ChildLimits(memory_bytes=self.limits.child_memory_bytes, wall_seconds=self.limits.job_seconds)
-        child = Child("run", limits, folder, label=f"job-{job_id}")
+        kernels = str(kernel_cache(self.scratch, self.states.get(job_id).owner)) if sandboxed() else None
+        limits = ChildLimits(memory_bytes=self.limits.child_memory_bytes, wall_seconds=self.limits.job_seconds,
+                             kernel_cache=kernels)
+        try:
+            child = Child("run", limits, folder, label=f"job-{job_id}")
+        except ChildFailed as exc:  # NDRF_SANDBOX=required on a machine without namespaces
+            return self._fail(writer, str(exc))
         frames: queue.Queue = queue.Queue(maxsize=4)
         reader = threading.Thread(target=_pump, args=(child, frames), name=f"frames-{job_id}", daemon=True)
         try:

@@ -119,15 +119,23 @@ class EventBus(ABC):
         """Release the event loop's connections (no-op in-process)."""
 
 
+class SlotsUnavailable(Exception):
+    """The count of open streams cannot be read now (Redis away or busy): the stream is refused
+    (503 with ``Retry-After``), never let in uncounted."""
+
+
 class StreamSlots(ABC):
-    """Open event streams per key, counted across every API process that shares the queue."""
+    """Open event streams per key, counted across every API process that shares the queue. Guards
+    the per-key stream cap (``NDRF_MAX_STREAMS_PER_KEY``): job and experiment streams, opened with
+    the key or with a read token it was given, all count against the key."""
 
     #: A slot not refreshed for this long is free again (its API process died).
     ttl_seconds: float = 60.0
 
     @abstractmethod
     async def acquire(self, owner: str, cap: int) -> str | None:
-        """A slot id, or None if ``owner`` already holds ``cap`` open streams."""
+        """A slot id, or None if ``owner`` already holds ``cap`` open streams. Raises
+        :class:`SlotsUnavailable` when the count cannot be read (fails closed)."""
 
     @abstractmethod
     async def refresh(self, owner: str, slot: str) -> None:

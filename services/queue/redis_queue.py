@@ -18,7 +18,8 @@
 Idle time and heartbeat are reset in the same script, so "idle for a lease period" (XAUTOCLAIM's
 test) and "heartbeat expired" agree. The delivery counter Redis keeps per pending entry is the
 delivery number. Events go to a stream per job, ``ndrf:events:<id>``, trimmed (the store keeps
-them all); waiting on it uses ``redis.asyncio`` on the event loop (no thread held).
+them all); waiting on it uses ``redis.asyncio`` on the event loop (no thread held), with connections
+of its own (:mod:`services.queue.redis_waits`).
 """
 
 from __future__ import annotations
@@ -34,7 +35,8 @@ from typing import Any
 import redis
 import redis.asyncio
 
-from services.queue.base import EventBus, JobQueue, Lease, Renewal, StreamSlots
+from services.queue.base import EventBus, JobQueue, Lease, Renewal, SlotsUnavailable, StreamSlots
+from services.queue.redis_waits import REDIS_ERRORS, Quiet, StreamWaits, command_client
 
 log = logging.getLogger(__name__)
 
@@ -187,13 +189,6 @@ def connect(url: str) -> redis.Redis:
                                 health_check_interval=15)
 
 
-def connect_async(url: str) -> redis.asyncio.Redis:
-    """A client for the event loop. Its socket timeout (redis-py's default is 5 s) must exceed the
-    longest ``XREAD BLOCK``; callers also bound each wait with ``wait_for``."""
-    return redis.asyncio.Redis.from_url(url, decode_responses=True, socket_connect_timeout=5, socket_timeout=60,
-                                        health_check_interval=15)
-
-
 class RedisJobQueue(JobQueue):
     def __init__(self, client: redis.Redis, lease_seconds: float):
         self.redis = client
@@ -293,12 +288,15 @@ class RedisJobQueue(JobQueue):
 
 class RedisEventBus(EventBus):
     """Events on ``ndrf:events:<job>``; threads wait with the blocking client, the event loop with
-    a ``redis.asyncio`` client of its own (made on first use, per loop)."""
+    clients of its own (made on first use, per loop, :mod:`services.queue.redis_waits`): a bounded
+    pool for short commands, and one multiplexed ``XREAD BLOCK`` for every wait."""
 
-    def __init__(self, client: redis.Redis, url: str | None = None):
+    def __init__(self, client: redis.Redis, url: str | None = None, connections: int = 32):
         self.redis = client
         self.url = url
-        self._async: tuple[asyncio.AbstractEventLoop, redis.asyncio.Redis] | None = None
+        self.connections = connections
+        self._async: tuple[asyncio.AbstractEventLoop, redis.asyncio.Redis, StreamWaits] | None = None
+        self.quiet = Quiet()
 
     def publish(self, job_id: str, event: dict) -> None:
         try:
@@ -321,60 +319,70 @@ class RedisEventBus(EventBus):
             time.sleep(min(timeout, 1.0))
             return True
 
-    def async_client(self) -> redis.asyncio.Redis:
+    def _loop_clients(self) -> tuple[redis.asyncio.Redis, StreamWaits]:
         loop = asyncio.get_running_loop()
         if self._async is None or self._async[0] is not loop:
             if self.url is None:
                 raise RuntimeError("RedisEventBus needs the Redis URL to wait on the event loop")
-            self._async = (loop, connect_async(self.url))
-        return self._async[1]
+            self._async = (loop, command_client(self.url, self.connections), StreamWaits(self.url))
+        return self._async[1], self._async[2]
+
+    def async_client(self) -> redis.asyncio.Redis:
+        """The event loop's client for short commands (a bounded pool; never an ``XREAD BLOCK``)."""
+        return self._loop_clients()[0]
 
     async def wait_async(self, job_id: str, after_seq: int, timeout: float) -> bool:
         stream = EVENTS.format(job_id)
-        client = self.async_client()
+        client, waits = self._loop_clients()
         try:
             last = _entries(await asyncio.wait_for(client.xrevrange(stream, count=1), 10))
-            if last and int(last[0][1]["seq"]) > after_seq:
-                return True
-            reply = await asyncio.wait_for(client.xread({stream: last[0][0] if last else "0-0"}, count=1,
-                                                        block=max(1, int(timeout * 1000))), timeout + 10)
-            return bool(reply)
-        except (redis.RedisError, OSError, TimeoutError) as exc:  # Redis away: readers re-read the store
-            log.warning("event stream of job %s unavailable: %s", job_id, exc)
+        except REDIS_ERRORS as exc:  # Redis away or busy: readers re-read the store
+            self.quiet.warning("event stream of job %s unavailable: %s", job_id, exc)
             await asyncio.sleep(min(timeout, 1.0))
             return True
+        if last and int(last[0][1]["seq"]) > after_seq:
+            return True
+        return await waits.wait(stream, last[0][0] if last else "0-0", timeout)
 
     async def aclose(self) -> None:
         if self._async is not None:
-            await self._async[1].aclose()
+            _, client, waits = self._async
             self._async = None
+            await waits.aclose()
+            await client.aclose()
 
 
 class RedisStreamSlots(StreamSlots):
     """``ndrf:streams:<owner>``: a sorted set of open streams, scored by when each expires, shared by
-    every API process (a process that dies leaves slots that expire after ``ttl_seconds``)."""
+    every API process (a process that dies leaves slots that expire after ``ttl_seconds``).
+
+    Guards the per-key stream cap. It fails closed: when Redis cannot answer (away, or the command
+    pool busy for ``POOL_WAIT_SECONDS``) :meth:`acquire` raises :class:`SlotsUnavailable` (the
+    route answers 503 with ``Retry-After``); it never lets a stream in uncounted."""
 
     def __init__(self, bus: RedisEventBus, ttl_seconds: float = 60.0):
         self.bus, self.ttl_seconds = bus, ttl_seconds
+        self.quiet = Quiet()
 
     async def acquire(self, owner: str, cap: int) -> str | None:
         slot = uuid.uuid4().hex
         try:
-            got = await self.bus.async_client().eval(_ACQUIRE, 1, SLOTS.format(owner), cap,
-                                                     int(self.ttl_seconds * 1000), slot)
-        except redis.RedisError as exc:  # Redis away: streams still work (the store feeds them), uncapped
-            log.warning("stream slots unavailable, not capping: %s", exc)
-            return slot
+            got = await asyncio.wait_for(self.bus.async_client().eval(
+                _ACQUIRE, 1, SLOTS.format(owner), cap, int(self.ttl_seconds * 1000), slot), 5)
+        except REDIS_ERRORS as exc:
+            self.quiet.warning("stream slots unavailable, refusing streams: %s", exc)
+            raise SlotsUnavailable(str(exc)) from None
         return slot if int(got) else None
 
     async def refresh(self, owner: str, slot: str) -> None:
         try:
-            await self.bus.async_client().eval(_REFRESH, 1, SLOTS.format(owner), int(self.ttl_seconds * 1000), slot)
-        except redis.RedisError as exc:
-            log.warning("stream slot refresh failed: %s", exc)
+            await asyncio.wait_for(self.bus.async_client().eval(
+                _REFRESH, 1, SLOTS.format(owner), int(self.ttl_seconds * 1000), slot), 5)
+        except REDIS_ERRORS as exc:
+            self.quiet.warning("stream slot refresh failed: %s", exc)
 
     async def release(self, owner: str, slot: str) -> None:
         try:
-            await self.bus.async_client().zrem(SLOTS.format(owner), slot)
-        except redis.RedisError as exc:  # it expires by itself
-            log.warning("stream slot release failed: %s", exc)
+            await asyncio.wait_for(self.bus.async_client().zrem(SLOTS.format(owner), slot), 5)
+        except REDIS_ERRORS as exc:  # it expires by itself
+            self.quiet.warning("stream slot release failed: %s", exc)

@@ -52,10 +52,21 @@ def _check_start(tmp_path, ply_body: bytes):
 def test_a_loader_crash_is_described_with_the_file_it_was_reading(tmp_path):
     """The PLY header overflow of issue 13, given to Mitsuba directly (no Python check before it):
     the child dies by a signal and the parent names it and the file."""
+    # Whether the overflowed reads crash depends on the heap's layout: most runs do, some read to
+    # the end of the file first and report it cleanly ("read 11136 out of 12288 bytes"), about one
+    # in three in the sandbox (whose set-up moves the heap), none in 15 runs without it. So: the
+    # clean report is accepted, and the crash must come within a few attempts.
     start = _check_start(tmp_path, struct.pack("<3f", 0, 0, 0) * 4000)
-    with pytest.raises(ChildFailed) as failed:
-        exchange("check", start, ChildLimits(wall_seconds=60), tmp_path, "the scene loader")
-    message = str(failed.value)
+    for _ in range(10):
+        try:
+            kind, meta = exchange("check", start, ChildLimits(wall_seconds=60), tmp_path, "the scene loader")
+        except ChildFailed as exc:
+            failed = exc
+            break
+        assert kind == "invalid" and "m.ply" in meta["message"] and "out of" in meta["message"], meta
+    else:
+        pytest.fail("the overflowing PLY never crashed the loader in 10 attempts")
+    message = str(failed)
     assert message.startswith("the scene loader crashed (SIG") and message.endswith("reading m.ply"), message
 
 
@@ -123,3 +134,120 @@ def test_a_child_in_a_new_session_keeps_the_niceness_of_a_niced_worker():
 
     assert session_nice(7) == "7"
     assert session_nice(0) == "0"                             # a worker at nice 0: nothing changed
+
+
+def _probe(tmp_path, start: dict, hide: tuple[str, ...] = ()) -> dict:
+    work = tmp_path / "scratch" / "job-1"
+    work.mkdir(parents=True, exist_ok=True)
+    kind, report = exchange("probe", start, ChildLimits(wall_seconds=60, hide=hide), work, "the probe")
+    assert kind == "probed"
+    return report
+
+
+@pytest.fixture()
+def sandbox_on(monkeypatch):
+    from services.jobs import sandbox
+    from services.settings import get_settings
+
+    command, why = sandbox.probe()
+    if command is None:
+        pytest.skip(f"this machine cannot create the child's namespaces: {why}")
+    monkeypatch.setenv("NDRF_SANDBOX", "required")
+    get_settings.cache_clear()
+    yield
+    get_settings.cache_clear()
+
+
+def test_a_sandboxed_child_cannot_write_the_store_nor_reach_redis(tmp_path, redis_server, sandbox_on, monkeypatch):
+    """Issue 27, point 9, from inside a child: creating a file in the store folder fails (the
+    filesystem is read-only but the child's work folder), and so does connecting to Redis on
+    127.0.0.1 (a network namespace of its own); the store it was told to hide is empty to it, other
+    jobs' scratch folders are out of sight, and it has no capability left to undo any of this."""
+    import socket
+
+    from services.settings import get_settings
+
+    store = tmp_path / "store"
+    (store / "0000000000000000001").mkdir(parents=True)
+    (store / "0000000000000000001" / "record.json").write_text("{}")
+    (tmp_path / "scratch" / "job-2").mkdir(parents=True)          # another job's scratch folder
+    host, port = "127.0.0.1", int(redis_server.url.rsplit(":", 1)[1].split("/")[0])
+    socket.create_connection((host, port), timeout=2).close()     # reachable from here
+    start = {"write": [str(store), str(store / "0000000000000000001"), str(tmp_path)],
+             "connect": [[host, port]], "list": [str(store), str(tmp_path / "scratch")],
+             "unmount": [str(store), "/"]}
+    seen = _probe(tmp_path, start)                                # the store read-only, not hidden
+    assert all(v.startswith("refused: Read-only file system") for v in seen["write"].values()), seen
+    assert seen["connect"][f"{host}:{port}"].startswith("refused"), seen
+    assert seen["list"][str(tmp_path / "scratch")] == "ok: ['job-1']", seen
+    assert all(v.startswith("refused") for v in seen["unmount"].values()), seen
+    assert seen["capabilities"] == "0" and seen["cwd_writable"].startswith("ok"), seen
+    secret = tmp_path / "credentials"
+    secret.write_text("aws_secret_access_key = k")
+    unix = socket.socket(socket.AF_UNIX)                          # Redis on a Unix socket: a read-only
+    unix.bind(str(tmp_path / "redis.sock"))                       # mount does not stop connect()
+    unix.listen(1)
+    monkeypatch.setenv("NDRF_SANDBOX_HIDE", f"{secret},{tmp_path / 'redis.sock'}")
+    get_settings.cache_clear()
+    nested = str(tmp_path / "scratch" / "job-2")                  # inside the hidden scratch root: no error
+    hidden = _probe(tmp_path, {**start, "read": [str(secret)], "connect": [[str(tmp_path / "redis.sock"), 0]]},
+                    hide=(str(store), nested))                    # ... hidden too
+    unix.close()
+    assert hidden["connect"][f"{tmp_path / 'redis.sock'}:0"].startswith("refused"), hidden
+    assert hidden["list"][str(store)] == "ok: []", hidden
+    assert hidden["write"][str(store)].startswith("refused"), hidden
+    assert hidden["read"][str(secret)] == "ok: ", hidden       # NDRF_SANDBOX_HIDE: reads empty
+    assert sorted(p.name for p in store.iterdir()) == ["0000000000000000001"]   # nothing was written
+    assert [p.name for p in (store / "0000000000000000001").iterdir()] == ["record.json"]
+
+
+def test_without_the_sandbox_the_same_probe_writes_and_connects(tmp_path, redis_server, monkeypatch):
+    """The control of the test above (and what ``NDRF_SANDBOX=off``, or a machine without
+    namespaces, leaves): the same child writes the store and reaches Redis."""
+    from services.settings import get_settings
+
+    monkeypatch.setenv("NDRF_SANDBOX", "off")
+    get_settings.cache_clear()
+    try:
+        store = tmp_path / "store"
+        store.mkdir()
+        port = int(redis_server.url.rsplit(":", 1)[1].split("/")[0])
+        seen = _probe(tmp_path, {"write": [str(store)], "connect": [["127.0.0.1", port]]})
+    finally:
+        get_settings.cache_clear()
+    assert seen["write"][str(store)].startswith("ok") and seen["connect"][f"127.0.0.1:{port}"].startswith("ok"), seen
+
+
+def test_required_sandbox_refuses_to_start_a_child_where_namespaces_fail(tmp_path, monkeypatch):
+    """``NDRF_SANDBOX=required`` on a machine without namespaces: no child starts (the job or the
+    upload fails with the reason), rather than one that could write the store."""
+    from services.jobs import sandbox
+    from services.settings import get_settings
+
+    monkeypatch.setenv("NDRF_SANDBOX", "required")
+    monkeypatch.setattr(sandbox, "probe", lambda: (None, "unshare: operation not permitted"))
+    sandbox.command_prefix.cache_clear()
+    get_settings.cache_clear()
+    try:
+        with pytest.raises(ChildFailed, match="NDRF_SANDBOX=required"):
+            _probe(tmp_path, {})
+    finally:
+        sandbox.command_prefix.cache_clear()
+        get_settings.cache_clear()
+
+
+def test_a_sandboxed_run_keeps_kernels_in_its_keys_own_cache(tmp_path, sandbox_on):
+    """Dr.Jit's kernel cache of a run is the folder of its job's key (kept across its jobs, writable),
+    not the shared cache: what one key's child compiles (or plants) no other key's child loads."""
+    kernels = tmp_path / "scratch" / "kernels"
+    (kernels / "key-a").mkdir(parents=True)
+    (kernels / "key-b").mkdir()
+    (kernels / "key-b" / "kernel.bin").write_text("b's")
+    work = tmp_path / "scratch" / "job-1"
+    work.mkdir()
+    kind, seen = exchange("probe", {"write": ["/dev/shm/drjit-cache"], "list": [str(kernels)]},
+                          ChildLimits(wall_seconds=60, kernel_cache=str(kernels / "key-a")), work, "the probe")
+    assert seen["write"]["/dev/shm/drjit-cache"].startswith("ok"), seen
+    assert seen["list"][str(kernels)].startswith("refused"), seen          # under the hidden scratch root
+    assert len(list((kernels / "key-a").iterdir())) == 1                    # kept by the parent
+    assert [p.name for p in (kernels / "key-b").iterdir()] == ["kernel.bin"]

@@ -188,3 +188,82 @@ def test_local_stream_slots_cap():
         assert await slots.acquire("k", 1)
 
     asyncio.run(scenario())
+
+
+def test_stream_slots_fail_closed_when_redis_errors():
+    """A slots object whose Redis is unreachable refuses (SlotsUnavailable: the route's 503), it
+    never lets a stream in uncounted."""
+    from services.queue.base import SlotsUnavailable
+    from services.queue.redis_queue import RedisEventBus, RedisStreamSlots, connect
+    from tests.support.cluster import free_port
+
+    url = f"redis://127.0.0.1:{free_port()}/0"                # nothing listens there
+    slots = RedisStreamSlots(RedisEventBus(connect(url), url))
+
+    async def scenario():
+        with pytest.raises(SlotsUnavailable):
+            await slots.acquire("k", 3)
+        await slots.bus.aclose()
+
+    asyncio.run(scenario())
+
+
+def test_stream_slots_fail_closed_when_the_command_pool_is_busy(redis_server):
+    """Every command connection held (here by two long BLPOPs): acquiring a slot fails within about
+    a second instead of counting nothing (the probe's 100 extra streams of issue 27)."""
+    from services.queue.base import SlotsUnavailable
+    from services.queue.redis_queue import RedisEventBus, RedisStreamSlots, connect
+
+    bus = RedisEventBus(connect(redis_server.url), redis_server.url, connections=2)
+    slots = RedisStreamSlots(bus)
+
+    async def scenario():
+        client = bus.async_client()
+        held = [asyncio.create_task(client.blpop([f"nothing-{i}"], timeout=4)) for i in range(2)]
+        await asyncio.sleep(0.3)
+        started = time.monotonic()
+        with pytest.raises(SlotsUnavailable):
+            await slots.acquire("k", 3)
+        assert time.monotonic() - started < 3.0
+        await asyncio.gather(*held)
+        assert await slots.acquire("k", 3) is not None         # free again: counted as usual
+        await bus.aclose()
+
+    asyncio.run(scenario())
+
+
+def test_stream_waits_share_one_connection_and_leave_the_commands_free(redis_server):
+    """300 waits on 300 streams: one XREAD BLOCK over all of them (the wait pool has two
+    connections), the command pool stays free for the slots of everyone else, and an event wakes
+    the waiters of its stream only."""
+    from services.queue.redis_queue import RedisEventBus, RedisStreamSlots, connect
+
+    client = connect(redis_server.url)
+    bus = RedisEventBus(client, redis_server.url, connections=4)
+    slots = RedisStreamSlots(bus)
+
+    async def scenario():
+        before = len(client.client_list())
+        waiters = {i: asyncio.create_task(bus.wait_async(f"s{i}", 0, 8.0)) for i in range(300)}
+        await asyncio.sleep(0.5)
+        assert len(client.client_list()) - before <= 4 + 2      # command pool + the wait's two
+        started = time.monotonic()
+        assert await slots.acquire("other-tenant", 3) is not None
+        assert time.monotonic() - started < 0.5
+        await asyncio.to_thread(bus.publish, "s7", {"seq": 1, "type": "x"})
+        assert await asyncio.wait_for(waiters.pop(7), 2.0)
+        await asyncio.sleep(0.2)
+        assert not any(task.done() for task in waiters.values())
+        await asyncio.to_thread(bus.publish, "s8", {"seq": 1, "type": "x"})  # a stream that joined earlier
+        assert await asyncio.wait_for(waiters.pop(8), 2.0)
+        late = asyncio.create_task(bus.wait_async("late", 0, 8.0))  # joins while the read blocks
+        await asyncio.sleep(0.2)
+        started = time.monotonic()
+        await asyncio.to_thread(bus.publish, "late", {"seq": 1, "type": "x"})
+        assert await asyncio.wait_for(late, 2.0) and time.monotonic() - started < 1.0
+        for task in waiters.values():
+            task.cancel()
+        await asyncio.gather(*waiters.values(), return_exceptions=True)
+        await bus.aclose()
+
+    asyncio.run(scenario())
