@@ -67,12 +67,21 @@ def _in_child(mode: str, start: dict, scene: SceneSpec, limits: Limits, cwd: Pat
     return meta
 
 
+def checks_folder() -> Path:
+    """The folder holding the work folders of scene checks. A sandboxed child hides the folder
+    holding its work folder (the other checks'); with the system's temporary folder itself as that
+    parent, it would hide everything under it, an installation of the product included."""
+    folder = Path(tempfile.gettempdir()) / "ndrf-checks"
+    folder.mkdir(mode=0o700, exist_ok=True)
+    return folder
+
+
 def preflight(spec: JobSpec, limits: Limits) -> dict:
     """Every check a job can fail before it runs. Returns what the loader reported (sensors and
     films, scalars); raises :class:`InvalidJob` naming the field."""
     check_limits(spec, limits)
     check_target_headers(spec, limits)
-    with tempfile.TemporaryDirectory(prefix="ndrf-preflight-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="ndrf-preflight-", dir=checks_folder()) as tmp:
         scene_file = stage_scene(spec.scene, Path(tmp) / "scene", upload_limits(limits))
         start = {"spec": spec.model_dump(mode="json"), "scene_file": str(scene_file) if scene_file else None,
                  "max_scalars": limits.parameters}
@@ -84,7 +93,7 @@ def preflight(spec: JobSpec, limits: Limits) -> dict:
 def describe_scene(scene: SceneSpec, limits: Limits) -> dict:
     """The optimizable parameters and the films of a scene (``/v1/scenes/.../parameters``),
     loaded in a sandboxed child like a job's: ``{"parameters": [...], "sensors": [[w, h], ...]}``."""
-    with tempfile.TemporaryDirectory(prefix="ndrf-describe-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="ndrf-describe-", dir=checks_folder()) as tmp:
         scene_file = stage_scene(scene, Path(tmp) / "scene", upload_limits(limits))
         start = {"scene": scene.model_dump(mode="json"), "scene_file": str(scene_file) if scene_file else None}
         return _in_child("describe", start, scene, limits, Path(tmp))["scene"]

@@ -34,6 +34,7 @@ import logging
 import os
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 log = logging.getLogger(__name__)
@@ -152,6 +153,7 @@ def enter(spec: dict) -> None:
     for folder in folders:                                     # the outermost (the others are inside)
         if not any(_inside(folder, outer) for outer in hidden):
             hidden.append(folder)
+    _refuse_to_hide_the_code(hidden)
     _kernel_cache(libc, hidden, spec.get("kernel_cache"))
     for file in {Path(p).resolve() for p in spec.get("hide", []) if Path(p).exists() and not Path(p).is_dir()}:
         _mount(libc, "/dev/null", str(file), None, MS_BIND)    # a file reads empty, a socket refuses
@@ -167,6 +169,17 @@ def enter(spec: dict) -> None:
     _mount(libc, None, str(work), None, MS_REMOUNT | MS_BIND | MS_NOSUID | MS_NODEV | kept)
     os.chdir(work)                                             # onto the writable mount
     _drop_privileges(libc)
+
+
+def _refuse_to_hide_the_code(hidden: list[Path]) -> None:
+    """A hidden folder holding the interpreter or the product would leave the child unable to
+    import what it runs next, failing later with a misleading ModuleNotFoundError: say why now."""
+    code = {Path(sys.prefix).resolve(), Path(__file__).resolve().parents[2]}
+    for folder in hidden:
+        inside = sorted(str(p) for p in code if _inside(p, folder))
+        if inside:
+            raise SandboxUnavailable(f"the sandbox would hide {folder}, which holds {', '.join(inside)}: keep the "
+                                     f"store, NDRF_SCRATCH and NDRF_SANDBOX_HIDE outside the installation")
 
 
 def namespaces() -> dict[str, str]:
