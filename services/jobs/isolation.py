@@ -88,11 +88,15 @@ def hidden(limits: ChildLimits, cwd: Path) -> list[str]:
 SEED_BYTES = 256 << 20
 
 
+#: The folder of the scratch folder that holds the keys' kernel caches (kept across attempts).
+KERNELS = "kernels"
+
+
 def kernel_cache(scratch: Path, owner: str) -> Path:
     """The Dr.Jit kernel cache folder of one API key's sandboxed runs (created on first use as a
     *copy* of the shared cache, so that a key starts warm and what its children add or alter
     never reaches the shared cache, nor any other key's children)."""
-    folder = scratch / "kernels" / re.sub(r"[^0-9A-Za-z_-]", "_", owner)
+    folder = scratch / KERNELS / re.sub(r"[^0-9A-Za-z_-]", "_", owner)
     if folder.is_dir():
         return folder
     shared = Path(os.environ.get("DRJIT_CACHE_DIR") or Path.home() / ".drjit")

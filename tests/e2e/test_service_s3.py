@@ -14,6 +14,7 @@ import urllib.request
 import numpy as np
 import pytest
 
+from services.jobs.isolation import KERNELS
 from tests.support.service import (
     Process,
     RedisServer,
@@ -81,8 +82,9 @@ def test_api_and_two_workers_without_a_shared_folder(machines, tmp_path):
         assert [e["id"] for e in events] == list(range(events[0]["id"], events[-1]["id"] + 1))   # no gap
     assert {machines.store.get_json(f"{j}/record.json")["worker"] for j in ids} == {"m1", "m2"}
     assert not (tmp_path / "store").exists()
-    for worker in (w1, w2):   # the scratch folders held only the staged scene, removed as the attempt ends
-        wait_until(lambda w=worker: not any(w.scratch.iterdir()), 30, what=f"{worker.scratch} emptied")
+    for worker in (w1, w2):   # the staged scenes are removed as the attempt ends; the keys' kernel caches stay
+        wait_until(lambda w=worker: not any(p.name != KERNELS for p in w.scratch.iterdir()), 30,
+                   what=f"{worker.scratch} emptied of staged scenes")
 
     job_id = ids[0]
     status, headers, png = api.request("GET", f"/v1/jobs/{job_id}/iterations/4/render.png")
