@@ -34,21 +34,6 @@ def api(tmp_path_factory):
     proc.kill(signal.SIGKILL)
 
 
-@pytest.fixture()
-def page(browser, api):
-    """A fresh browser context: empty sessionStorage, so the page asks for the key again."""
-    # bypass_csp: Playwright's wait_for_function evaluates strings in the page, which the dashboard's
-    # CSP forbids (test_the_dashboard_runs_under_its_content_security_policy keeps it)
-    context = browser.new_context(viewport={"width": 1360, "height": 900}, bypass_csp=True)
-    page = context.new_page()
-    page.set_default_timeout(30_000)
-    errors: list[str] = []
-    page.on("pageerror", lambda exc: errors.append(str(exc)))
-    yield page
-    context.close()
-    assert not errors, f"uncaught errors in the page: {errors}"
-
-
 def fill_small_job(page, *, name: str, spp: str = "4", init: str = "0.3", iterations: str = "20"):
     """The submit form, filled for a job that runs in seconds on 2 cores (cornell-box, 16x16)."""
     page.get_by_test_id("field-scene.builtin").select_option("cornell-box")

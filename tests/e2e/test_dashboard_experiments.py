@@ -28,20 +28,6 @@ def api(tmp_path_factory):
     proc.kill(signal.SIGKILL)
 
 
-@pytest.fixture()
-def page(browser):
-    # bypass_csp: Playwright's wait_for_function evaluates strings in the page, which the dashboard's
-    # CSP forbids (test_the_dashboard_runs_under_its_content_security_policy keeps it)
-    context = browser.new_context(viewport={"width": 1360, "height": 900}, bypass_csp=True)
-    page = context.new_page()
-    page.set_default_timeout(30_000)
-    errors: list[str] = []
-    page.on("pageerror", lambda exc: errors.append(str(exc)))
-    yield page
-    context.close()
-    assert not errors, f"uncaught errors in the page: {errors}"
-
-
 def rows(page) -> list[dict]:
     return page.evaluate("""() => [...document.querySelectorAll('[data-testid=run-row]')].map((tr) => ({
         index: Number(tr.dataset.index), status: tr.dataset.status,
