@@ -88,9 +88,13 @@ class JobWriter:
     def targets(self, images: dict[int, np.ndarray]) -> None:
         self.guard()
         for sensor, image in sorted(images.items()):
-            if not self.files.store.exists(self.files.target_key(sensor, "npy")):  # deterministic: written once
-                self._put(self.files.target_key(sensor, "npy"), npy_bytes(np.asarray(image, np.float32)))
-                self._put(self.files.target_key(sensor, "png"), srgb_png(image))
+            # Deterministic, written once; durable at the next checkpoint, as the records are (a
+            # resume that finds them missing writes them again): an fsync each would hold the
+            # first iterations' events back behind them
+            if not self.files.store.exists(self.files.target_key(sensor, "npy")):
+                self._put(self.files.target_key(sensor, "npy"), npy_bytes(np.asarray(image, np.float32)),
+                          durable=False)
+                self._put(self.files.target_key(sensor, "png"), srgb_png(image), durable=False)
 
     def progress(self, kind: str, payload: dict) -> None:
         self.guard()

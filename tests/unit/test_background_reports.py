@@ -85,3 +85,17 @@ def test_close_raises_a_failure_the_loop_never_saw():
 def test_depth_is_checked():
     with pytest.raises(ValueError, match="depth"):
         BackgroundReporter(Host(), depth=0)
+
+
+def test_the_switch_interval_is_short_while_the_writer_runs_and_restored_after():
+    import sys
+
+    from services.solver.optimize.background import SWITCH_INTERVAL
+
+    before = sys.getswitchinterval()
+    reporter = BackgroundReporter(Host())
+    try:
+        assert sys.getswitchinterval() <= SWITCH_INTERVAL < before
+    finally:
+        reporter.close()
+    assert sys.getswitchinterval() == before

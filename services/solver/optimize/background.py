@@ -2,6 +2,12 @@
 one writer thread, so that an iteration's record, event and images are written while the next
 iteration renders (Dr.Jit and torch release the GIL in their kernels).
 
+The writer's Python work runs under the GIL, which the loop's thread needs back as soon as a
+kernel returns: at CPython's default switch interval (5 ms, about a fifth of a 1-spp ``prb``
+iteration on a CPU) a waiting loop thread would idle behind the writer. While the reporter is
+open the interval is :data:`SWITCH_INTERVAL` (restored by :meth:`close`); ``python -m
+bench.prb_iteration`` measures the loop with it.
+
 Order is kept: reports reach the host's reporter in the order the loop made them, on one thread.
 A checkpoint waits until it is written (a resume must find every record it keeps), and so does
 :meth:`BackgroundReporter.flush`, which the loop calls before it declares success. What writing
@@ -14,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import sys
 import threading
 
 import numpy as np
@@ -26,6 +33,9 @@ log = logging.getLogger(__name__)
 #: Reports that may wait for the writer: beyond this the loop waits (a slow store slows the run
 #: down rather than letting images pile up in memory).
 DEPTH = 8
+
+#: CPython's GIL switch interval (seconds) while a writer thread runs beside the loop.
+SWITCH_INTERVAL = 0.0005
 
 _CLOSE = object()
 
@@ -42,6 +52,8 @@ class BackgroundReporter:
         self._queue: queue.Queue = queue.Queue(maxsize=depth)
         self._error: BaseException | None = None
         self._surfaced = False   # whether the loop's thread has seen _error
+        self._switch_interval = sys.getswitchinterval()
+        sys.setswitchinterval(min(self._switch_interval, SWITCH_INTERVAL))
         self._thread = threading.Thread(target=self._write, name="run-reports", daemon=True)
         self._thread.start()
 
@@ -79,6 +91,7 @@ class BackgroundReporter:
         """Write what is queued, end the thread, and raise a failure the loop has not seen."""
         self._queue.put(_CLOSE)
         self._thread.join()
+        sys.setswitchinterval(self._switch_interval)
         if self._error is not None and not self._surfaced:
             self._raise()
 

@@ -132,7 +132,7 @@ class Prb(GradientMethod):
         with params.tracking():
             image = mi.render(problem.scene.scene, params.params, sensor=sensor, integrator=self.integrator,
                               spp=spp, spp_grad=gradient_spp, seed=opaque_seed(derive_seed(seed, "primal")),
-                              seed_grad=derive_seed(seed, "adjoint"))
+                              seed_grad=opaque_seed(derive_seed(seed, "adjoint")))
             if isinstance(loss, ImageLoss):
                 rgb = image[..., :3]
                 z, dz_dy, bad = loss.device(rgb)
