@@ -62,6 +62,10 @@ def test_the_radius_rule():
         noisy.append(lm.noise_dominated())
     assert lm.radius == pytest.approx(0.1)                                # never below the learning rate
     assert not noisy[0] and any(noisy)                                    # the share of reversals passed 0.4
+    fast = LevenbergMarquardt(2, 0.1, 0.0, grow=2.0)                      # an open scene's growth
+    q = fast.step(np.array([0.5, 0.5]), np.array([-5.0, 0.0]), lo, hi, lr=0.1, hessian=h)
+    fast.step(q, np.array([-5.0, 0.0]), lo, hi, lr=0.1, hessian=h)
+    assert fast.radius == pytest.approx(0.2)
 
 
 def valley_model(coupling: float, seed: int = 0):
@@ -112,6 +116,8 @@ def test_state_round_trip_and_argument_ranges():
         LevenbergMarquardt(3, 0.0, 1e-3)
     with pytest.raises(ValueError, match="damping"):
         LevenbergMarquardt(3, 0.05, -1.0)
+    with pytest.raises(ValueError, match=r"growth must be in \(1, 4\], got 1.0"):
+        LevenbergMarquardt(3, 0.05, 1e-3, grow=1.0)
     with pytest.raises(ValueError, match="curvature"):
         a.step(np.zeros(3), np.zeros(3), LOWER, UPPER, lr=0.05)
     with pytest.raises(ValueError, match="unknown optimizer"):

@@ -29,7 +29,8 @@ def test_the_default_job_gets_prb_levenberg_marquardt_and_one_view_with_reasons(
         "prb", "levenberg-marquardt", "method", 1, 1)
     assert recipe.adaptive_views and recipe.depth.unbiased
     said = {d.what: d for d in recipe.decisions}
-    assert set(said) == {"method", "optimizer", "views", "spp", "depth"}
+    assert set(said) == {"method", "optimizer", "views", "spp", "depth", "trust_growth"}
+    assert recipe.trust_growth == 1.5 and "not measured" in said["trust_growth"].reason
     assert "2 forward render(s) per view" in said["optimizer"].reason           # 6 scalars, 2 channel groups
     assert all(d.iteration is None and d.reason for d in recipe.decisions)     # decided before iteration 0
     assert recipe.to_json()["decisions"][0]["what"] == "method"
@@ -69,3 +70,20 @@ def test_a_truncated_depth_is_said_and_no_roulette_needs_a_depth():
     assert not recipe.depth.unbiased and "biased" in recipe.depth.describe()
     with pytest.raises(ValidationError, match="needs a finite render.max_depth"):
         _spec(render={"rr_depth": None})
+
+
+def test_the_trust_region_grows_faster_where_light_leaves_the_scene():
+    from services.solver.optimize.recipe import CLOSED, CLOSED_GROWTH, OPEN_GROWTH
+
+    asked = []
+
+    def measured(value):
+        return lambda: asked.append(value) or value
+
+    opened = choose_recipe(_spec(), _problem([3, 3]), sensors=8, closure=measured(0.85))
+    closed = choose_recipe(_spec(), _problem([3, 3]), sensors=8, closure=measured(CLOSED))
+    assert (opened.trust_growth, closed.trust_growth) == (OPEN_GROWTH, CLOSED_GROWTH)
+    assert "85% of the light" in opened.decisions[-3].reason and "closed scene" in closed.decisions[-3].reason
+    assert opened.to_json()["trust_growth"] == OPEN_GROWTH
+    adam = choose_recipe(_spec(optimizer="adam"), _problem([3, 3]), sensors=8, closure=measured(0.1))
+    assert asked == [0.85, CLOSED] and adam.trust_growth == CLOSED_GROWTH   # measured only for Levenberg-Marquardt

@@ -34,6 +34,18 @@ def test_the_multi_view_rooms_have_eight_cameras_and_differ_by_the_front_wall(mi
     assert len(closed.scene.shapes()) == len(opened.scene.shapes()) + 1
 
 
+def test_closure_is_one_in_a_closed_room_and_less_where_a_wall_is_missing(mi):
+    from services.solver.scene.closure import STANDARD_ERROR, closure
+    from services.solver.scene.load import load_scene
+
+    closed, opened = load_scene(builtin="room-closed-8"), load_scene(builtin="room-open-8")
+    assert closure(closed) == 1.0                       # every ray from a wall hits a wall
+    share = closure(opened)
+    # one of six equal walls open: a sixth of the walls' rays miss at most; fewer, as walls face each other
+    assert share is not None and 1 - 1 / 6 - STANDARD_ERROR < share < 1 - STANDARD_ERROR, share
+    assert closure(opened, seed=1) == pytest.approx(share, abs=3 * STANDARD_ERROR)
+
+
 def test_staged_upload_with_include_and_mesh_relative_to_it(mi, tmp_path):
     from schemas.job import XmlScene
     from services.solver.scene.load import load_scene

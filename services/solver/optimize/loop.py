@@ -43,6 +43,7 @@ from services.solver.optimize.recipe import Recipe, choose_recipe, grow_batch
 from services.solver.optimize.report import RunAborted, RunOutcome, RunReporter, StopReason
 from services.solver.optimize.setup import Prepared, prepare
 from services.solver.optimize.views import ViewStream
+from services.solver.scene.closure import closure
 from services.solver.seeds import derive_seed
 from services.solver.training.trainer import FieldTrainer, fields_of
 
@@ -128,7 +129,8 @@ class InverseRenderingRun:
         state = trainer = None
         try:
             prepared = prepare(self.spec, scene_file=self.scene_file)
-            recipe = choose_recipe(self.spec, prepared.problem, len(prepared.targets))
+            recipe = choose_recipe(self.spec, prepared.problem, len(prepared.targets),
+                                   closure=lambda: closure(prepared.problem.scene, seed=self.spec.seed))
             self.method_name = recipe.method
             built = build(prepared, recipe.method, recipe.jacobian)
             trainer = built.trainer
@@ -175,7 +177,7 @@ class InverseRenderingRun:
     def _initial_state(self, prepared: Prepared, recipe: Recipe, trainer: FieldTrainer | None) -> RunState:
         spec = self.spec
         optimizer = make_optimizer(recipe.optimizer, prepared.problem.parameters.n, lr=spec.learning_rate,
-                                   betas=spec.adam_betas, damping=spec.damping)
+                                   betas=spec.adam_betas, damping=spec.damping, trust_growth=recipe.trust_growth)
         state = RunState(0, prepared.init.copy(), optimizer)
         if self.resume is not None:
             saved = checkpoint.loads(self.resume, spec)

@@ -132,7 +132,9 @@ class Prb(GradientMethod):
         with params.tracking():
             image = mi.render(problem.scene.scene, params.params, sensor=sensor, integrator=self.integrator,
                               spp=spp, spp_grad=gradient_spp, seed=opaque_seed(derive_seed(seed, "primal")),
-                              seed_grad=opaque_seed(derive_seed(seed, "adjoint")))
+                              # opaque as the primal's: an int would be a kernel literal, a new
+                              # kernel every iteration (Mitsuba's stub says int; it takes UInt32)
+                              seed_grad=opaque_seed(derive_seed(seed, "adjoint")))  # type: ignore[arg-type]
             if isinstance(loss, ImageLoss):
                 rgb = image[..., :3]
                 z, dz_dy, bad = loss.device(rgb)

@@ -11,12 +11,14 @@ from services.solver.optimize.optimizers.levenberg_marquardt import LevenbergMar
 OPTIMIZERS = (Adam.name, LevenbergMarquardt.name, GaussNewton.name)
 
 
-def make_optimizer(name: str, size: int, *, lr: float, betas: tuple[float, float], damping: float) -> ParameterOptimizer:
-    """The optimizer ``name`` for ``size`` scalars (``lr``: the initial learning rate)."""
+def make_optimizer(name: str, size: int, *, lr: float, betas: tuple[float, float], damping: float,
+                   trust_growth: float = 1.5) -> ParameterOptimizer:
+    """The optimizer ``name`` for ``size`` scalars (``lr``: the initial learning rate;
+    ``trust_growth``: Levenberg-Marquardt's growth of the trust radius, the recipe's)."""
     if name == Adam.name:
         return Adam(size, lr, *betas)
     if name == LevenbergMarquardt.name:
-        return LevenbergMarquardt(size, lr, damping)
+        return LevenbergMarquardt(size, lr, damping, trust_growth)
     if name == GaussNewton.name:
         return GaussNewton(damping)
     raise ValueError(f"unknown optimizer {name!r}; known: {', '.join(OPTIMIZERS)}")
