@@ -19,6 +19,11 @@ from client.sse import parse_stream
 JOB_ID = re.compile(r"^[0-9a-f]{20}$")
 EXPERIMENT_ID = re.compile(r"^e[0-9a-f]{20}$")
 FINISHED = frozenset({"succeeded", "failed", "canceled"})
+#: Answers that mean "not now" (a stream cap, a busy upload guard, Redis unreachable): retried after
+#: their ``Retry-After`` when retrying cannot do anything twice (module docstring of :class:`Client`).
+RETRIED = frozenset({429, 503})
+#: The longest ``Retry-After`` the client waits for before giving up with the answer.
+MAX_RETRY_AFTER = 30.0
 
 
 def is_job_id(value: str) -> bool:
@@ -32,8 +37,9 @@ def is_experiment_id(value: str) -> bool:
 class ApiError(Exception):
     """A non-2xx answer: ``status``, the problem document, and its ``errors`` [{field, message}]."""
 
-    def __init__(self, status: int, problem: dict):
+    def __init__(self, status: int, problem: dict, headers: dict[str, str] | None = None):
         self.status, self.problem = status, problem
+        self.headers = {k.lower(): v for k, v in (headers or {}).items()}   # names are case-insensitive
         self.errors: list[dict] = problem.get("errors") or []
         super().__init__(f"HTTP {status}: {problem.get('detail') or problem.get('title') or 'error'}")
 
@@ -44,11 +50,28 @@ class ApiError(Exception):
         return [str(self.problem.get("detail") or self.problem.get("title") or f"HTTP {self.status}")]
 
 
+def _retry_after(value: str | None) -> float | None:
+    """Seconds of a ``Retry-After`` given in seconds, when short enough to wait for; else None."""
+    try:
+        seconds = float(value) if value is not None else None
+    except ValueError:
+        return None   # an HTTP date: the server means a long time
+    return seconds if seconds is not None and 0 <= seconds <= MAX_RETRY_AFTER else None
+
+
 class Client:
-    def __init__(self, base_url: str, api_key: str | None = None, timeout: float = 60.0):
+    """The API over HTTP. A 429 or 503 with ``Retry-After`` (at most :data:`MAX_RETRY_AFTER` s) is
+    retried up to ``retries`` times after the wait it names, for requests that cannot take effect
+    twice: reads (GET) and writes that carry an ``Idempotency-Key``. Anything else is an
+    :class:`ApiError` at once."""
+
+    def __init__(self, base_url: str, api_key: str | None = None, timeout: float = 60.0, retries: int = 3):
+        if retries < 0:
+            raise ValueError(f"retries must be >= 0, got {retries}")
         self.base = base_url.rstrip("/")
         self.api_key = api_key or None
         self.timeout = timeout
+        self.retries = retries
 
     @classmethod
     def from_env(cls, server: str | None = None, **kwargs) -> Client:
@@ -59,6 +82,19 @@ class Client:
     # ---------------------------------------------------------------- transport
 
     def _open(self, method: str, path: str, body: Any = None, headers: dict | None = None, timeout: float | None = None):
+        safe = method == "GET" or "Idempotency-Key" in (headers or {})
+        for attempt in range(self.retries + 1):
+            try:
+                return self._open_once(method, path, body, headers, timeout)
+            except ApiError as err:
+                wait = _retry_after(err.headers.get("retry-after")) if err.status in RETRIED else None
+                if not safe or wait is None or attempt == self.retries:
+                    raise
+                time.sleep(wait)
+        raise AssertionError("unreachable")
+
+    def _open_once(self, method: str, path: str, body: Any = None, headers: dict | None = None,
+                   timeout: float | None = None):
         data = None if body is None else json.dumps(body).encode()
         request = urllib.request.Request(self.base + path, data=data, method=method,
                                          headers={"Accept": "application/json", **(headers or {})})
@@ -74,7 +110,8 @@ class Client:
                 problem = json.loads(raw) if raw else {}
             except ValueError:
                 problem = {"detail": raw[:500].decode(errors="replace")}
-            raise ApiError(err.code, problem if isinstance(problem, dict) else {"detail": str(problem)}) from None
+            raise ApiError(err.code, problem if isinstance(problem, dict) else {"detail": str(problem)},
+                           dict((err.headers or {}).items())) from None
 
     def request(self, method: str, path: str, body: Any = None, headers: dict | None = None) -> bytes:
         with self._open(method, path, body, headers) as response:
