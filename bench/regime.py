@@ -103,9 +103,10 @@ def stays_below(curve: list[dict], target_error: float) -> dict | None:
     return None
 
 
-def race(job: dict, variants: list[str], *, target_error: float, budget: float | None, loop_spp: list[int],
-         loop_rr: list[int | None], loop_views: list[int | None]) -> dict:
-    """The loop's grid and the product's variants on ``job``; results by row name."""
+def race(job: dict, variants: list[str] | dict[str, dict], *, target_error: float, budget: float | None,
+         loop_spp: list[int], loop_rr: list[int | None], loop_views: list[int | None]) -> dict:
+    """The loop's grid and the product's variants on ``job`` (names of :data:`VARIANTS`, or rows
+    with their own changes); results by row name."""
     from schemas.job import JobSpec
     from services.solver.optimize.setup import prepare
 
@@ -114,8 +115,9 @@ def race(job: dict, variants: list[str], *, target_error: float, budget: float |
     sensors = len(prepared.targets)
     views = [v for v in loop_views if v is None or v < sensors] or [None]
     rows = run_grid(prepared, grid(loop_spp, loop_rr, views), target_error=target_error, budget=budget)
-    for name in variants:
-        variant = merge(base, VARIANTS[name])
+    changes = variants if isinstance(variants, dict) else {name: VARIANTS[name] for name in variants}
+    for name, change in changes.items():
+        variant = merge(base, change)
         compile_only = {"targets": {"synthetic": {"spp": 1}}, "training": {"warmup_steps": 2}}
         run_product(merge(variant, compile_only), target_error, iterations=2)   # its kernels, untimed
         log.info("product: %s", name)
