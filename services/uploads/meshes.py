@@ -41,50 +41,26 @@ import re
 import struct
 import zlib
 from collections.abc import Iterator
-from dataclasses import dataclass
 
 import numpy as np
 
-from schemas.errors import InvalidJob
+from services.uploads.mesh_base import (
+    CHUNK,
+    MAX_COUNT,
+    MAX_MESH_COUNT,
+    MESH_TYPES,
+    MeshLimits,
+    MeshSummary,
+    check_count,
+    refuse,
+)
+from services.uploads.mesh_ply import check_ply
 
 log = logging.getLogger(__name__)
 
-MAX_COUNT = 2**31 - 1  # every declared count must be below 2^31
-MAX_MESH_COUNT = (2**32 - 1) // 3  # Mitsuba sizes buffers as uint32(count) * 3
-MESH_TYPES = ("ply", "obj", "serialized")  # Mitsuba shape types that read a mesh file
+__all__ = ["MAX_COUNT", "MAX_MESH_COUNT", "MESH_TYPES", "MeshLimits", "MeshSummary", "check_mesh", "mesh_kind"]
 
-_PLY_HEADER_BYTES = 64 << 10  # a real PLY header is a few hundred bytes
 _SERIALIZED_NAME_BYTES = 4096  # shape name inside a serialized stream (NUL-terminated)
-_CHUNK = 1 << 20  # bytes inflated or parsed at a time
-
-
-@dataclass(frozen=True)
-class MeshLimits:
-    """The caps this module applies; :class:`services.uploads.scene.UploadLimits` has the same
-    fields and can be passed instead."""
-
-    max_mesh_vertices: int = 10_000_000
-    max_mesh_faces: int = 20_000_000
-    max_mesh_decompressed_bytes: int = 256 << 20
-
-
-@dataclass(frozen=True)
-class MeshSummary:
-    """What loading the file costs: ``vertices`` and ``faces`` (triangles) Mitsuba will build,
-    ``bytes`` of the file it reads. For ``serialized``, ``shapes`` has one summary per sub-shape
-    (``bytes`` = its compressed stream), since a shape loads one of them (``shape_index``)."""
-
-    format: str
-    vertices: int
-    faces: int
-    bytes: int
-    shapes: tuple[MeshSummary, ...] = ()
-
-    def shape(self, index: int) -> MeshSummary:
-        """The summary of what ``shape_index=index`` loads (the whole file for PLY/OBJ)."""
-        if not self.shapes:
-            return self
-        return self.shapes[index]
 
 
 def mesh_kind(path: str, shape_type: str | None = None) -> str | None:
@@ -101,281 +77,12 @@ def check_mesh(path: str, data: bytes, limits: MeshLimits = MeshLimits(),
     ``serialized``), else the extension decides. Raises InvalidJob on ``scene.files[path]``."""
     fmt = mesh_kind(path, kind)
     if fmt is None:
-        raise _refuse(path, f"is not a mesh Mitsuba can read: expected one of {', '.join(MESH_TYPES)} "
+        raise refuse(path, f"is not a mesh Mitsuba can read: expected one of {', '.join(MESH_TYPES)} "
                             "(by the shape's type or the file extension)")
-    checker = {"ply": _check_ply, "obj": _check_obj, "serialized": _check_serialized}[fmt]
+    checker = {"ply": check_ply, "obj": _check_obj, "serialized": _check_serialized}[fmt]
     summary = checker(path, memoryview(data).toreadonly(), limits)
     log.debug("mesh %s: %s, %d vertices, %d faces", path, fmt, summary.vertices, summary.faces)
     return summary
-
-
-def _refuse(path: str, message: str) -> InvalidJob:
-    return InvalidJob(f"scene.files[{path}]", message)
-
-
-def _check_count(path: str, what: str, count: int, cap: int, cap_name: str, verb: str = "declares") -> None:
-    if count > MAX_COUNT:
-        raise _refuse(path, f"{verb} {count} {what}; counts must be below 2^31")
-    cap = min(cap, MAX_MESH_COUNT)
-    if count > cap:
-        raise _refuse(path, f"{verb} {count} {what}; at most {cap} are allowed per mesh ({cap_name})")
-
-
-# ------------------------------------------------------------------------------------------ PLY
-
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "long": "i8", "ulong": "u8",
-    "half": "f2", "float16": "f2", "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-_FACE_LISTS = ("vertex_indices", "vertex_index")  # the face list Mitsuba reads
-_WHITESPACE = np.zeros(256, dtype=bool)
-_WHITESPACE[list(b" \t\n\r\v\f")] = True
-
-
-@dataclass
-class _PlyProperty:
-    name: str
-    type: str  # numpy type code
-    count_type: str | None = None  # set for a list
-
-
-@dataclass
-class _PlyElement:
-    name: str
-    count: int
-    properties: list[_PlyProperty]
-
-    def tokens(self) -> int:
-        """Values per row as Mitsuba reads them (a list is its count and 3 entries)."""
-        return sum(4 if p.count_type else 1 for p in self.properties)
-
-    def min_tokens(self) -> int:
-        return len(self.properties)
-
-    def stride(self) -> int:
-        return sum(int(p.count_type[1]) + 3 * int(p.type[1]) if p.count_type else int(p.type[1])
-                   for p in self.properties)
-
-    def min_stride(self) -> int:
-        return sum(int((p.count_type or p.type)[1]) for p in self.properties)
-
-
-def _check_ply(path: str, data: memoryview, limits) -> MeshSummary:
-    fmt, elements, start = _ply_header(path, data)
-    for element in elements:
-        if element.name == "vertex":
-            _check_count(path, "vertices", element.count, limits.max_mesh_vertices, "max_mesh_vertices")
-        elif element.name == "face":
-            _check_count(path, "faces", element.count, limits.max_mesh_faces, "max_mesh_faces")
-        else:
-            _check_count(path, f"'{element.name}' elements", element.count, MAX_COUNT, "2^31")
-    vertices = sum(e.count for e in elements if e.name == "vertex")
-    body = data[start:]
-    if fmt == "ascii":
-        _check_ply_ascii(path, body, elements, vertices)
-    else:
-        _check_ply_binary(path, body, elements, vertices, "<" if fmt == "binary_little_endian" else ">")
-    faces = sum(e.count for e in elements if e.name == "face")
-    return MeshSummary("ply", vertices, faces, len(data))
-
-
-def _ply_header(path: str, data: memoryview) -> tuple[str, list[_PlyElement], int]:
-    """(format, elements, offset of the body) from the header lines up to ``end_header``."""
-    head = bytes(data[:_PLY_HEADER_BYTES])
-    first = head.find(b"\n")
-    if first < 0 or head[:first].strip() != b"ply":
-        raise _refuse(path, "is not a PLY file: it must start with a 'ply' line")
-    fmt = None
-    elements: list[_PlyElement] = []
-    pos = first + 1
-    while True:
-        end = head.find(b"\n", pos)
-        if end < 0:
-            raise _refuse(path, f"has no 'end_header' line in its first {_PLY_HEADER_BYTES} bytes")
-        try:
-            words = head[pos:end].decode("ascii").split()
-        except UnicodeDecodeError:
-            raise _refuse(path, "has a PLY header that is not ASCII text") from None
-        line, pos = " ".join(words), end + 1
-        if not words or words[0] == "comment":
-            continue
-        if words[0] == "end_header" and len(words) == 1:
-            break
-        if words[0] == "format":
-            if fmt or len(words) != 3 or words[2] != "1.0" or \
-                    words[1] not in ("ascii", "binary_little_endian", "binary_big_endian"):
-                raise _refuse(path, f"unsupported PLY header line {line[:80]!r}: expected one "
-                                    "'format ascii|binary_little_endian|binary_big_endian 1.0'")
-            fmt = words[1]
-        elif words[0] == "element" and len(words) == 3:
-            elements.append(_PlyElement(words[1], _ply_count(path, words[1], words[2]), []))
-        elif words[0] == "property" and elements and fmt:
-            elements[-1].properties.append(_ply_property(path, words, line))
-        else:
-            raise _refuse(path, f"unsupported PLY header line {line[:80]!r} (Mitsuba accepts ply, format, "
-                                "comment, element, property and end_header, properties after format and element)")
-    if fmt is None:
-        raise _refuse(path, "has no 'format' line in its PLY header")
-    return fmt, elements, pos
-
-
-def _ply_count(path: str, name: str, token: str) -> int:
-    if not (token.isascii() and token.isdigit()) or len(token) > 20:
-        raise _refuse(path, f"element {name!r}: count {token[:30]!r} must be a plain decimal number below 2^31")
-    return int(token)
-
-
-def _ply_property(path: str, words: list[str], line: str) -> _PlyProperty:
-    if words[1] == "list" and len(words) == 5:
-        count_type, item_type, name = words[2], words[3], words[4]
-        for word in (count_type, item_type):
-            if word not in _PLY_TYPES:
-                raise _refuse(path, f"unknown PLY property type {word[:30]!r} in {line[:80]!r}; "
-                                    f"known: {', '.join(_PLY_TYPES)}")
-        if _PLY_TYPES[count_type][0] not in "iu":
-            raise _refuse(path, f"the count of list {name!r} must have an integer type, not {count_type!r}")
-        return _PlyProperty(name, _PLY_TYPES[item_type], _PLY_TYPES[count_type])
-    if len(words) == 3 and words[1] != "list":
-        if words[1] not in _PLY_TYPES:
-            raise _refuse(path, f"unknown PLY property type {words[1][:30]!r} in {line[:80]!r}; "
-                                f"known: {', '.join(_PLY_TYPES)}")
-        return _PlyProperty(words[2], _PLY_TYPES[words[1]])
-    raise _refuse(path, f"malformed PLY property line {line[:80]!r}")
-
-
-def _describe(elements: list[_PlyElement]) -> str:
-    return ", ".join(f"{e.count} {e.name!r}" for e in elements) + " elements" if elements else "no elements"
-
-
-def _check_ply_binary(path: str, body: memoryview, elements: list[_PlyElement], vertices: int,
-                      order: str) -> None:
-    needed = sum(e.count * e.min_stride() for e in elements)
-    if needed > len(body):
-        raise _refuse(path, f"the PLY header declares {_describe(elements)}, which need at least {needed} bytes "
-                            f"of binary data, but the file has {len(body)} after the header")
-    exact = sum(e.count * e.stride() for e in elements)
-    if exact != len(body):
-        raise _refuse(path, f"the PLY header declares {_describe(elements)}: with triangle faces (the only "
-                            f"kind Mitsuba reads) that is exactly {exact} bytes after the header, the file has "
-                            f"{len(body)}")
-    offset = 0
-    for element in elements:
-        if not any(p.count_type for p in element.properties):
-            offset += element.count * element.stride()
-            continue
-        fields = []
-        for i, p in enumerate(element.properties):
-            if p.count_type:
-                fields.append((f"c{i}", order + p.count_type))
-                fields += [(f"l{i}_{j}", order + p.type) for j in range(3)]
-            else:
-                fields.append((f"s{i}", order + p.type))
-        rows = np.frombuffer(body, dtype=np.dtype(fields), count=element.count, offset=offset)
-        offset += element.count * element.stride()
-        for i, p in enumerate(element.properties):
-            if p.count_type:
-                _check_lists(path, element, p, rows[f"c{i}"], [rows[f"l{i}_{j}"] for j in range(3)], vertices)
-
-
-def _check_lists(path: str, element: _PlyElement, prop: _PlyProperty, counts: np.ndarray,
-                 columns: list[np.ndarray], vertices: int, first_row: int = 0) -> None:
-    """Every list has 3 entries; the face indices lie in [0, vertices)."""
-    bad = np.flatnonzero(counts != 3)
-    if bad.size:
-        row = int(bad[0])
-        raise _refuse(path, f"{element.name} {first_row + row}: list {prop.name!r} has {counts[row]} entries; "
-                            "Mitsuba reads triangles only (3)")
-    if element.name != "face" or prop.name not in _FACE_LISTS:
-        return
-    for column in columns:
-        if column.size and (column.min() < 0 or column.max() >= vertices):
-            row = int(np.flatnonzero((column < 0) | (column >= vertices))[0])
-            raise _refuse(path, f"face {first_row + row}: vertex index {column[row]} is out of range (the mesh has "
-                                f"{vertices} vertices)")
-
-
-def _count_tokens(body: memoryview) -> int:
-    """Whitespace-separated tokens in ``body``, counted in chunks with numpy."""
-    raw = np.frombuffer(body, dtype=np.uint8)
-    count, previous_space = 0, True
-    for start in range(0, raw.size, _CHUNK):
-        space = _WHITESPACE[raw[start:start + _CHUNK]]
-        count += int(np.count_nonzero(space[:-1] & ~space[1:])) + int(previous_space and not space[0])
-        previous_space = bool(space[-1])
-    return count
-
-
-def _token_offset(body: memoryview, index: int) -> int:
-    """Byte offset of token ``index`` (0-based) in ``body``; len(body) if there are fewer."""
-    raw = np.frombuffer(body, dtype=np.uint8)
-    seen, previous_space = 0, True
-    for start in range(0, raw.size, _CHUNK):
-        space = _WHITESPACE[raw[start:start + _CHUNK]]
-        begins = ~space & np.concatenate(([previous_space], space[:-1]))
-        found = np.flatnonzero(begins)
-        if seen + found.size > index:
-            return start + int(found[index - seen])
-        seen += found.size
-        previous_space = bool(space[-1])
-    return len(body)
-
-
-def _check_ply_ascii(path: str, body: memoryview, elements: list[_PlyElement], vertices: int) -> None:
-    tokens = _count_tokens(body)
-    needed = sum(e.count * e.min_tokens() for e in elements)
-    if needed > tokens:
-        raise _refuse(path, f"the PLY header declares {_describe(elements)}, which need at least {needed} values, "
-                            f"but the file has {tokens} after the header")
-    exact = sum(e.count * e.tokens() for e in elements)
-    if exact != tokens:
-        raise _refuse(path, f"the PLY header declares {_describe(elements)}: with triangle faces (the only kind "
-                            f"Mitsuba reads) that is exactly {exact} values after the header, the file has {tokens}")
-    first = 0
-    for element in elements:
-        lists = [(i, p) for i, p in enumerate(element.properties) if p.count_type]
-        if element.name == "face" and lists and element.count:
-            _check_ascii_faces(path, body, element, lists, first, vertices)
-        first += element.count * element.tokens()
-
-
-def _check_ascii_faces(path: str, body: memoryview, element: _PlyElement, lists, first: int,
-                       vertices: int) -> None:
-    """Parse the face rows in chunks of whole tokens; check list counts and indices."""
-    width = element.tokens()
-    columns, column = {}, 0
-    for i, p in enumerate(element.properties):
-        if p.count_type:
-            columns[i] = column
-            column += 4
-        else:
-            column += 1
-    start = _token_offset(body, first)
-    stop = _token_offset(body, first + element.count * width)
-    text = bytes(body[start:stop])
-    pending = np.empty(0, dtype="S1")
-    row0, pos = 0, 0
-    while pos < len(text):
-        end = min(pos + _CHUNK, len(text))
-        while end < len(text) and not _WHITESPACE[text[end]]:
-            end += 1
-        words = text[pos:end].split()
-        pos = end
-        if not words:
-            continue
-        values = np.concatenate((pending, np.array(words)))
-        rows = values.size // width
-        block, pending = values[:rows * width].reshape(rows, width), values[rows * width:]
-        for i, p in lists:
-            c = columns[i]
-            try:
-                numbers = block[:, c:c + 4].astype(np.int64)
-            except (ValueError, OverflowError):
-                raise _refuse(path, f"face list {p.name!r}: counts and indices must be integers") from None
-            _check_lists(path, element, p, numbers[:, 0], [numbers[:, j] for j in (1, 2, 3)], vertices, row0)
-        row0 += rows
 
 
 # ------------------------------------------------------------------------------------------ OBJ
@@ -389,13 +96,13 @@ def _check_obj(path: str, data: memoryview, limits) -> MeshSummary:
     reader recognizes them (a line's first word after spaces, tabs and carriage returns)."""
     text = bytes(data)
     vertices = sum(1 for _ in _OBJ_VERTEX.finditer(text))
-    _check_count(path, "vertices ('v' lines)", vertices, limits.max_mesh_vertices, "max_mesh_vertices", "has")
+    check_count(path, "vertices ('v' lines)", vertices, limits.max_mesh_vertices, "max_mesh_vertices", "has")
     faces = 0
     cap = min(limits.max_mesh_faces, MAX_MESH_COUNT)
     for match in _OBJ_FACE.finditer(text):
         faces += max(len(match[1].split()) - 2, 0)
         if faces > cap:
-            raise _refuse(path, f"has more than {cap} triangles (faces with n corners count n - 2); at most "
+            raise refuse(path, f"has more than {cap} triangles (faces with n corners count n - 2); at most "
                                 f"{cap} are allowed per mesh (max_mesh_faces)")
     return MeshSummary("obj", vertices, faces, len(data))
 
@@ -422,7 +129,7 @@ class _Inflater:
             if not data:
                 if self._taken >= len(self._source):
                     return b""
-                data = self._source[self._taken:self._taken + _CHUNK]
+                data = self._source[self._taken:self._taken + CHUNK]
                 self._taken += len(data)
             out = self._zlib.decompress(data, want)
             if out:
@@ -430,7 +137,7 @@ class _Inflater:
                 return out
         return b""
 
-    def chunks(self, size: int, chunk: int = _CHUNK) -> Iterator[bytes]:
+    def chunks(self, size: int, chunk: int = CHUNK) -> Iterator[bytes]:
         """Exactly ``size`` bytes in pieces of ``chunk`` (the last may be shorter); raise EOFError
         when the stream ends first."""
         while size > 0:
@@ -450,17 +157,17 @@ class _Inflater:
 
 def _check_serialized(path: str, data: memoryview, limits) -> MeshSummary:
     if len(data) < 10:
-        raise _refuse(path, "is too short to be a Mitsuba serialized mesh")
+        raise refuse(path, "is too short to be a Mitsuba serialized mesh")
     magic, version = struct.unpack_from("<HH", data, 0)
     if magic != _SERIALIZED_MAGIC or version not in (3, 4):
-        raise _refuse(path, "is not a Mitsuba serialized mesh (expected identifier 0x041C, version 3 or 4)")
+        raise refuse(path, "is not a Mitsuba serialized mesh (expected identifier 0x041C, version 3 or 4)")
     offsets, table = _serialized_offsets(path, data, version)
     used = 0
     shapes = []
     for index, offset in enumerate(offsets):
         end = offsets[index + 1] if index + 1 < len(offsets) else table
         if struct.unpack_from("<HH", data, offset) != (magic, version):
-            raise _refuse(path, f"shape {index} at offset {offset} does not start with the file's header")
+            raise refuse(path, f"shape {index} at offset {offset} does not start with the file's header")
         shape, inflated = _serialized_shape(path, index, data[offset + 4:end], version, limits, used)
         used += inflated
         shapes.append(shape)
@@ -475,11 +182,11 @@ def _serialized_offsets(path: str, data: memoryview, version: int) -> tuple[list
     width = 8 if version == 4 else 4
     table = len(data) - 4 - count * width
     if count < 1 or count > MAX_COUNT or table < 4:
-        raise _refuse(path, f"has an invalid end-of-file shape table: {count} shapes do not fit in "
+        raise refuse(path, f"has an invalid end-of-file shape table: {count} shapes do not fit in "
                             f"{len(data)} bytes")
     offsets = list(struct.unpack_from(f"<{count}{'Q' if width == 8 else 'I'}", data, table))
     if offsets[0] != 0 or any(b - a < 6 for a, b in itertools.pairwise(offsets)) or table - offsets[-1] < 6:
-        raise _refuse(path, "has an invalid end-of-file shape table: offsets must start at 0, increase, "
+        raise refuse(path, "has an invalid end-of-file shape table: offsets must start at 0, increase, "
                             "and stay before the table")
     return offsets, table
 
@@ -497,34 +204,34 @@ def _serialized_shape(path: str, index: int, stream: memoryview, version: int, l
                 if byte == b"\0":
                     break
             else:
-                raise _refuse(path, f"{where}: the shape name is longer than {_SERIALIZED_NAME_BYTES} bytes")
+                raise refuse(path, f"{where}: the shape name is longer than {_SERIALIZED_NAME_BYTES} bytes")
         vertices, faces = struct.unpack("<QQ", inflater.read(16))
     except EOFError:
-        raise _refuse(path, f"{where}: the compressed stream ends inside the mesh header") from None
+        raise refuse(path, f"{where}: the compressed stream ends inside the mesh header") from None
     except zlib.error as exc:
-        raise _refuse(path, f"{where}: invalid compressed data ({exc})") from None
-    _check_count(path, f"vertices in {where}", vertices, limits.max_mesh_vertices, "max_mesh_vertices")
-    _check_count(path, f"faces in {where}", faces, limits.max_mesh_faces, "max_mesh_faces")
+        raise refuse(path, f"{where}: invalid compressed data ({exc})") from None
+    check_count(path, f"vertices in {where}", vertices, limits.max_mesh_vertices, "max_mesh_vertices")
+    check_count(path, f"faces in {where}", faces, limits.max_mesh_faces, "max_mesh_faces")
     real = 8 if flags & _DOUBLE else 4
     per_vertex = 3 + 3 * bool(flags & _HAS_NORMALS) + 2 * bool(flags & _HAS_TEXCOORDS) + 3 * bool(flags & _HAS_COLORS)
     arrays = vertices * per_vertex * real
     total = inflater.produced + arrays + faces * 12
     if used + total > limits.max_mesh_decompressed_bytes:
         before = f" ({used + total} with the shapes before it)" if used else ""
-        raise _refuse(path, f"{where}: {vertices} vertices and {faces} faces decompress to {total} bytes{before}; "
+        raise refuse(path, f"{where}: {vertices} vertices and {faces} faces decompress to {total} bytes{before}; "
                             f"at most {limits.max_mesh_decompressed_bytes} bytes per file are allowed "
                             "(max_mesh_decompressed_bytes)")
     try:
         for _ in inflater.chunks(arrays):
             pass
-        for piece in inflater.chunks(faces * 12, _CHUNK - _CHUNK % 12):
+        for piece in inflater.chunks(faces * 12, CHUNK - CHUNK % 12):
             indices = np.frombuffer(piece, dtype="<u4")
             if indices.max() >= vertices:
-                raise _refuse(path, f"{where}: face index {int(indices.max())} is out of range (the shape has "
+                raise refuse(path, f"{where}: face index {int(indices.max())} is out of range (the shape has "
                                     f"{vertices} vertices)")
     except EOFError:
-        raise _refuse(path, f"{where}: declares {vertices} vertices and {faces} faces ({total} bytes), but its "
+        raise refuse(path, f"{where}: declares {vertices} vertices and {faces} faces ({total} bytes), but its "
                             f"compressed stream ends after {inflater.produced} bytes") from None
     except zlib.error as exc:
-        raise _refuse(path, f"{where}: invalid compressed data ({exc})") from None
+        raise refuse(path, f"{where}: invalid compressed data ({exc})") from None
     return MeshSummary("serialized", vertices, faces, len(stream) + 4), inflater.produced

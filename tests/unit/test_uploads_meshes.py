@@ -144,7 +144,9 @@ def test_ascii_ply_face_indices_are_checked():
 
 
 def test_ascii_ply_face_rows_across_parse_chunks(monkeypatch):
-    monkeypatch.setattr(meshes, "_CHUNK", 7)  # rows and tokens straddle chunk boundaries
+    from services.uploads import mesh_ply
+
+    monkeypatch.setattr(mesh_ply, "CHUNK", 7)  # rows and tokens straddle chunk boundaries
     points = np.zeros((50, 3), dtype=np.float32)
     triangles = np.array([[i, i + 1, i + 2] for i in range(48)], dtype=np.uint32)
     assert check_mesh("m.ply", ply_ascii(points, triangles)).faces == 48
