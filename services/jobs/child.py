@@ -182,7 +182,8 @@ def run(start: dict, out) -> None:
     reporter = PipeReporter(out)
     resume = Path(start["resume_file"]).read_bytes() if start.get("resume_file") else None
     scene_file = Path(start["scene_file"]) if start.get("scene_file") else None
-    outcome = InverseRenderingRun(spec, reporter, scene_file=scene_file, resume=resume).execute()
+    warm = Path(start["warm_file"]).read_bytes() if start.get("warm_file") else None
+    outcome = InverseRenderingRun(spec, reporter, scene_file=scene_file, resume=resume, warm=warm).execute()
     write_frame(out, "outcome", asdict(outcome))
 
 
