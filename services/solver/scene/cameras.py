@@ -33,7 +33,8 @@ def perspective(origin, target, up, fov: float, width: int, height: int) -> mi.S
     forward = t - o
     if np.linalg.norm(forward) < 1e-9:
         raise ValueError("origin and target coincide: the camera has no direction")
-    if np.linalg.norm(np.cross(forward, u)) < 1e-9 * np.linalg.norm(forward) * max(np.linalg.norm(u), 1e-30):
+    scale = float(np.linalg.norm(forward)) * max(float(np.linalg.norm(u)), 1e-30)
+    if float(np.linalg.norm(np.cross(forward, u))) < 1e-9 * scale:
         raise ValueError("up is parallel to the viewing direction (target - origin)")
     if not 0.0 < fov < 180.0:
         raise ValueError(f"fov {fov} is outside (0, 180) degrees")
