@@ -68,3 +68,12 @@ def test_a_view_of_a_trained_job_names_its_files_and_only_its_owner_reaches_it(c
     assert client.get(f"/v1/jobs/{job_id}/views/{view['id']}/secret.txt", headers=ALICE).status_code == 422
     bad = client.post(f"/v1/jobs/{job_id}/views", json={**CAMERA, "up": [0.3, 0.2, 3.0]}, headers=ALICE)
     assert bad.status_code == 422 and "parallel" in bad.text
+
+    # warm starts from this job: never for another key, never with other parameter keys
+    warm = small_job("ndrf-lhs", iterations=1, warm_start={"job": job_id})
+    stolen = client.post("/v1/jobs", json=warm, headers=BOB)
+    assert stolen.status_code == 422 and "warm_start.job" in stolen.text and "of this API key" in stolen.text
+    other = {**warm, "parameters": [{"key": "green.reflectance.value"}],
+             "targets": {"synthetic": {"values": {"green.reflectance.value": [0.1, 0.5, 0.1]}, "spp": 16}}}
+    refused = client.post("/v1/jobs", json=other, headers=ALICE)
+    assert refused.status_code == 422 and "other parameter keys" in refused.text

@@ -4,10 +4,12 @@ finite images of the right shapes; the scene rebuilt with a camera keeps keys an
 
 from __future__ import annotations
 
+import io
 import json
 
 import numpy as np
 import pytest
+import torch
 from pydantic import ValidationError
 
 from schemas.job import JobSpec
@@ -120,6 +122,12 @@ def test_a_checkpoint_of_another_job_or_without_fields_is_refused(job, tmp_path)
     spec, blob, _ = job
     with pytest.raises(ValueError, match="different job"):
         restore(spec.model_copy(update={"seed": spec.seed + 1}), blob)
+    state = torch.load(io.BytesIO(blob), weights_only=True)
+    state["trainer"]["layout"]["scalars"] = state["trainer"]["layout"]["scalars"][::-1]  # outputs read as others
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    with pytest.raises(ValueError, match="another layout"):
+        restore(spec, buffer.getvalue())
     out = tmp_path / "prb"
     assert run_job(small_job("prb", iterations=1), out)["status"] == "succeeded"
     prb_spec = JobSpec.model_validate(json.loads((out / "spec.json").read_text()))

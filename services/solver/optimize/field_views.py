@@ -38,12 +38,13 @@ from services.solver.estimators.layout import DerivativeLayout
 from services.solver.estimators.methods import Fields, make_method
 from services.solver.estimators.problem import Problem
 from services.solver.estimators.render import PathDepth
-from services.solver.optimize.setup import Prepared, check, plan_for
+from services.solver.optimize.setup import Prepared, check, needs_effect_plan, plan_for
 from services.solver.scene.cameras import moved_sensor, perspective, with_cameras
+from services.solver.scene.facts import probe_scene
 from services.solver.scene.load import LoadedScene
 from services.solver.scene.params import ParameterSet
 from services.solver.seeds import derive_seed
-from services.solver.training.trainer import FieldTrainer
+from services.solver.training.trainer import FieldTrainer, layout_json
 
 log = logging.getLogger(__name__)
 
@@ -84,8 +85,21 @@ def planned_problem(spec: JobSpec, method: str, scene_file: Path | None = None) 
     prepared = Prepared(spec, problem, c.init, c.lower, c.upper, {}, c.target_values,
                         depth=PathDepth(spec.render.max_depth, spec.render.rr_depth))
     hybrid = spec.jacobian == "differential-field" and method != Method.NDRF_LHS
-    plan_for(prepared, str(Method.NDRF_LHS) if hybrid else method, spec.jacobian)
+    name = str(Method.NDRF_LHS) if hybrid else method
+    if needs_effect_plan(name, spec.jacobian):  # probed as prepare() probes: at the scene's own values
+        prepared.facts = probe_scene(c.scene, c.parameters, seed=derive_seed(spec.seed, "probe"), max_delta_depth=64)
+    plan_for(prepared, name, spec.jacobian)
     return prepared
+
+
+def check_layout(problem: Problem, saved: dict, field: str = "checkpoint") -> None:
+    """Raise ``ValueError`` if the checkpointed fields' derivative layout (which scalar and channel
+    each output of ``dL_theta`` is) differs from ``problem``'s: the outputs would be read as the
+    wrong scalars. Checkpoints from before the layout was saved are not checked."""
+    layout = saved.get("layout")
+    if layout is not None and layout != layout_json(problem.layout):
+        raise ValueError(f"the {field}'s dL_theta has another layout of scalars and channels ({layout}; this job: "
+                         f"{layout_json(problem.layout)}): its effect plan differs")
 
 
 def restore(spec: JobSpec, blob: bytes, scene_file: Path | None = None, *, train: bool = False) -> Restored:
@@ -101,6 +115,7 @@ def restore(spec: JobSpec, blob: bytes, scene_file: Path | None = None, *, train
     if not saved or not saved.get("fields"):
         raise ValueError(f"the job's run ({method}) trained no field: nothing to view (prb and direct train none)")
     prepared = planned_problem(spec, method, scene_file)
+    check_layout(prepared.problem, saved)
     config = spec.training if train else spec.training.model_copy(
         update={"pool": spec.training.pool.model_copy(update={"enabled": False})})
     trainer = FieldTrainer(prepared.problem, config, radiance="radiance" in saved["fields"],

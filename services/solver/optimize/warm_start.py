@@ -27,7 +27,7 @@ import numpy as np
 from schemas.errors import InvalidJob
 from schemas.job import JobSpec
 from services.solver.estimators.problem import Problem
-from services.solver.optimize.field_views import read_state
+from services.solver.optimize.field_views import check_layout, read_state
 from services.solver.training.schedule import StepSchedule
 from services.solver.training.trainer import FieldTrainer
 
@@ -75,6 +75,10 @@ def apply_warm_start(spec: JobSpec, blob: bytes, trainer: FieldTrainer | None, p
     if trainer is None:
         raise InvalidJob("warm_start", "this job's method trains no field: there is nothing to warm-start")
     state = read_state(blob)
+    try:
+        check_layout(problem, state.get("trainer") or {}, "warm-start job")
+    except ValueError as exc:
+        raise InvalidJob(FIELD, str(exc)) from None
     fields = load_fields(trainer, state.get("trainer"))
     start = np.asarray(parameters, np.float64).copy()
     if warm.parameters:
