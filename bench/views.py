@@ -14,6 +14,7 @@ that spp, relative to each other, divided by √2). Seconds per view: the field'
 rebuilt with the camera, first hits traced, fields queried) at the job's resolution and at 128x128.
 
     python -m bench.views [--iterations 12] [--prb-spp 1024] [--scenes cornell-red,hidden-object]
+                          [--warmup-steps N] [--residual-points N]
 """
 
 from __future__ import annotations
@@ -49,20 +50,21 @@ CAMERAS = {
 }
 
 
-def _job(name: str, iterations: int) -> dict:
+def _job(name: str, iterations: int, training: dict) -> dict:
     job = json.loads((ROOT / "examples" / f"{name}.json").read_text())
     job["iterations"] = iterations
+    job["training"] = {**job.get("training", {}), **training}
     job["images_every"] = iterations  # images off the clock (the view does not need them)
     return job
 
 
-def measure(name: str, iterations: int, spp: int, prb_spp: int) -> dict:
+def measure(name: str, iterations: int, spp: int, prb_spp: int, training: dict | None = None) -> dict:
     from schemas.job import JobSpec
     from schemas.views import ViewRequest
     from services.jobs.local import run_local
     from services.solver.optimize.field_views import render_view, restore
 
-    job = _job(name, iterations)
+    job = _job(name, iterations, training or {})
     folder = Path(tempfile.mkdtemp(prefix=f"bench-views-{name}-"))
     try:
         spec = JobSpec.model_validate(job)
@@ -108,10 +110,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--iterations", type=int, default=12, help="iterations of each job (short)")
     parser.add_argument("--spp", type=int, default=16, help="first-hit samples per pixel of the field's view")
     parser.add_argument("--prb-spp", type=int, default=1024, help="prb's samples per pixel (the issue: 4096)")
+    parser.add_argument("--warmup-steps", type=int, default=None, help="override the jobs' training.warmup_steps")
+    parser.add_argument("--residual-points", type=int, default=None,
+                        help="override the jobs' training.residual_points")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    results = [measure(name, args.iterations, args.spp, args.prb_spp) for name in args.scenes.split(",") if name]
+    training = {k: v for k, v in (("warmup_steps", args.warmup_steps), ("residual_points", args.residual_points))
+                if v is not None}
+    results = [measure(name, args.iterations, args.spp, args.prb_spp, training)
+               for name in args.scenes.split(",") if name]
     out = args.out or ROOT / "bench" / "results" / "views.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"machine": machine(), "results": results}, indent=1))
