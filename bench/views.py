@@ -11,7 +11,9 @@ relative L2 error over every scalar's image; ``sum_error`` that of the pixel sum
 what a loss weighing every pixel alike sees, where the per-pixel noise averages out). ``prb``'s
 own noise at ``--prb-spp`` is in both (``prb_noise``: two ``prb`` images with different seeds at
 that spp, relative to each other, divided by √2). Seconds per view: the field's view (scene
-rebuilt with the camera, first hits traced, fields queried) at the job's resolution and at 128x128.
+rebuilt with the camera, first hits traced, fields queried) at the job's resolution and at 128x128,
+and the same 128x128 view once more (what an orbit viewer's next frame would cost once Dr.Jit's
+kernels are compiled). Timings taken while other processes share the cores are upper bounds.
 
     python -m bench.views [--iterations 12] [--prb-spp 1024] [--scenes cornell-red,hidden-object]
                           [--warmup-steps N] [--residual-points N]
@@ -82,13 +84,16 @@ def measure(name: str, iterations: int, spp: int, prb_spp: int, training: dict |
         request = ViewRequest.model_validate({**camera, "spp": spp, "prb_spp": prb_spp})
         view = render_view(restored, request)
         assert view.prb is not None  # prb_spp was given
-        timed = render_view(restored, request.model_copy(update={"prb_spp": None, "resolution": (128, 128)}))
+        at_128 = request.model_copy(update={"prb_spp": None, "resolution": (128, 128)})
+        timed = render_view(restored, at_128)
+        again = render_view(restored, at_128)  # the same camera again: kernels compiled, as an orbit's next frame
         rows.append({
             "camera": label, "request": camera,
             "error": relative_error(view.gradients, view.prb),
             "sum_error": relative_error(view.gradients.sum(axis=(1, 2)), view.prb.sum(axis=(1, 2))),
             "view_seconds": view.seconds["scene"] + view.seconds["fields"],
             "view_seconds_128": timed.seconds["scene"] + timed.seconds["fields"],
+            "view_seconds_128_again": again.seconds["scene"] + again.seconds["fields"],
             "prb_seconds": view.seconds["prb"], "resolution": view.camera["resolution"],
         })
         log.info("%s / %s: %s", name, label, {k: v for k, v in rows[-1].items() if k != "request"})
@@ -98,9 +103,10 @@ def measure(name: str, iterations: int, spp: int, prb_spp: int, training: dict |
 
 def table(results: list[dict]) -> str:
     lines = [[r["scene"], row["camera"], row["error"], row["sum_error"], row["view_seconds"],
-              row["view_seconds_128"], row["prb_seconds"]] for r in results for row in r["rows"]]
+              row["view_seconds_128"], row.get("view_seconds_128_again", "-"), row["prb_seconds"]]
+             for r in results for row in r["rows"]]
     return markdown_table(["job", "camera", "error vs prb", "pixel-sum error",
-                           "s / view (job res.)", "s / view 128x128", "s prb"], lines)
+                           "s / view (job res.)", "s / view 128x128", "s / same view again", "s prb"], lines)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -52,7 +52,7 @@ def test_a_view_of_a_trained_job_names_its_files_and_only_its_owner_reaches_it(c
         status = client.get(f"/v1/jobs/{job_id}", headers=ALICE).json()["status"]
         return status if status in ("succeeded", "failed", "canceled") else None
 
-    assert wait_until(finished, 180, 0.3, what="the job") == "succeeded"
+    assert wait_until(finished, 600, 0.3, what="the job") == "succeeded"  # ~10 s on idle cores
     assert client.post(f"/v1/jobs/{job_id}/views", json=CAMERA, headers=BOB).status_code == 404
     response = client.post(f"/v1/jobs/{job_id}/views", json={**CAMERA, "prb_spp": 4}, headers=ALICE)
     assert response.status_code == 201, response.text
