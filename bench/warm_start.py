@@ -50,17 +50,20 @@ def run(job: dict, folder: Path, name: str, target_error: float) -> dict:
             "warm_start": plan.get("warm_start")}
 
 
-def measure(job: dict, seeds: list[int], rates: list[float], target_error: float) -> dict:
+def measure(job: dict, seeds: list[int], rates: list[float], target_error: float, on_row=None) -> dict:
+    """Every run; ``on_row`` sees the partial result after each pair (written as it goes)."""
     folder = Path(tempfile.mkdtemp(prefix="bench-warm-"))
     try:
         first = run(job, folder, "first", target_error)
-        rows = []
+        rows: list[dict] = []
         for seed in seeds:
             for rate in rates:
                 varied = {**job, "seed": seed, "learning_rate": rate}
                 cold = run(varied, folder, f"cold-{seed}-{rate}", target_error)
                 warm = run({**varied, "warm_start": {"job": "first"}}, folder, f"warm-{seed}-{rate}", target_error)
                 rows.append({"seed": seed, "learning_rate": rate, "cold": cold, "warm": warm})
+                if on_row is not None:
+                    on_row({"first": first, "rows": rows})
                 log.info("seed %s lr %s: cold %s / warm %s", seed, rate, cold, warm)
     finally:
         shutil.rmtree(folder, ignore_errors=True)
@@ -96,15 +99,19 @@ def main(argv: list[str] | None = None) -> None:
     if args.iterations is not None:
         job["iterations"] = args.iterations
     job["images_every"] = job["iterations"]
-    result = measure(job, [int(s) for s in args.seeds.split(",")], [float(r) for r in args.learning_rates.split(",")],
-                     args.target_error)
     out = args.out or ROOT / "bench" / "results" / f"warm_start-{args.job.stem}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"machine": machine(), "job": str(args.job), "target_error": args.target_error,
-                               **result}, indent=1))
-    text = table(result, args.target_error)
-    write_markdown(out, "bench.warm_start", argv, text)
-    log.info("\n%s", text)
+    about = machine()
+
+    def write(result: dict) -> None:  # after every pair: a run cut short keeps what it measured
+        out.write_text(json.dumps({"machine": about, "job": str(args.job), "target_error": args.target_error,
+                                   **result}, indent=1))
+        write_markdown(out, "bench.warm_start", argv, table(result, args.target_error))
+
+    result = measure(job, [int(s) for s in args.seeds.split(",")], [float(r) for r in args.learning_rates.split(",")],
+                     args.target_error, on_row=write)
+    write(result)
+    log.info("\n%s", table(result, args.target_error))
 
 
 if __name__ == "__main__":
