@@ -16,7 +16,7 @@ from api.deps import CallerDep, ReaderDep, RuntimeDep, files_or_404
 from api.problems import ProblemDetails, ProblemError
 from schemas.errors import InvalidJob
 from schemas.views import ViewFiles, ViewRequest
-from services.jobs.views import VIEW_FILE_PATTERN, VIEW_ID_PATTERN, NoCheckpoint, create_view
+from services.jobs.views import VIEW_FILE_PATTERN, VIEW_ID_PATTERN, NoCheckpoint, OverBudget, create_view
 
 router = APIRouter(route_class=GuardedRoute, prefix="/v1/jobs/{job_id}/views", tags=["views"],
                    responses={401: {"model": ProblemDetails}, 404: {"model": ProblemDetails}})
@@ -35,13 +35,16 @@ async def create(job_id: str, request: ViewRequest, runtime: RuntimeDep, caller:
     """Render ``L_phi`` and every scalar's ``dL_theta`` at the first hits of the camera's rays, from
     the job's latest checkpoint (a running job's too), and ``prb``'s gradient image from the same
     camera when ``prb_spp`` is set. A job without a checkpoint yet, or whose method trains no
-    field, is a ``409``; a camera that cannot be built a ``422``."""
+    field, or whose files would exceed the job's disk budget, is a ``409``; a camera that cannot be
+    built a ``422``."""
     files = files_or_404(runtime, job_id, caller)
     try:
         view_id, names, meta = await anyio.to_thread.run_sync(create_view, files, request, runtime.settings.limits,
                                                               limiter=runtime.blocking)
     except NoCheckpoint as exc:
         raise ProblemError(409, "Conflict", str(exc), slug="no-checkpoint") from None
+    except OverBudget as exc:
+        raise ProblemError(409, "Conflict", str(exc), slug="job-budget") from None
     except InvalidJob as exc:
         status = 409 if "trained no field" in exc.message else 422
         raise ProblemError(status, "Invalid view", str(exc), slug="invalid-view",

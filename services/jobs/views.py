@@ -41,6 +41,10 @@ class NoCheckpoint(Exception):
     """The job has no checkpoint yet (no fields to view)."""
 
 
+class OverBudget(Exception):
+    """The view's files would take the job's files over their disk budget (``job_bytes``)."""
+
+
 def view_files(radiance: np.ndarray, gradients: np.ndarray, prb: np.ndarray | None, meta: dict) -> dict[str, bytes]:
     """Every file of one view by name (module docstring)."""
     files = {"radiance.npy": npy_bytes(radiance.astype(np.float32)), "radiance.png": srgb_png(radiance),
@@ -88,7 +92,7 @@ def render_in_child(spec: JobSpec, checkpoint: bytes, request: ViewRequest,
 def create_view(files: JobFiles, request: ViewRequest, limits: Limits) -> tuple[str, list[str], dict]:
     """Render a view of the job of ``files`` (the caller has checked who may see it) from its latest
     checkpoint and store its files under ``views/<id>/``; returns the id, the file names and the
-    view's description. Raises :class:`NoCheckpoint` or :class:`InvalidJob`."""
+    view's description. Raises :class:`NoCheckpoint`, :class:`OverBudget` or :class:`InvalidJob`."""
     stored = files.read(JobFiles.SPEC)
     checkpoint = files.store.get(files.key(JobFiles.CHECKPOINT))
     if stored is None or checkpoint is None:
@@ -98,6 +102,10 @@ def create_view(files: JobFiles, request: ViewRequest, limits: Limits) -> tuple[
     meta = {**meta, "request": request.model_dump(mode="json")}
     view_id = secrets.token_hex(6)
     written = view_files(arrays["radiance"], arrays["gradients"], arrays.get("prb"), meta)
+    size, used = sum(len(data) for data in written.values()), files.store.prefix_bytes(files.prefix)
+    if used + size > limits.job_bytes:
+        raise OverBudget(f"the view's {size} bytes would take the job's files over {limits.job_bytes} bytes "
+                         f"(NDRF_MAX_JOB_BYTES; they hold {used}): delete the job's views or ask for a smaller one")
     for name, data in written.items():
         files.store.put(files.key(f"views/{view_id}/{name}"), data)
     return view_id, sorted(written), meta

@@ -77,3 +77,45 @@ def test_a_view_of_a_trained_job_names_its_files_and_only_its_owner_reaches_it(c
              "targets": {"synthetic": {"values": {"green.reflectance.value": [0.1, 0.5, 0.1]}, "spp": 16}}}
     refused = client.post("/v1/jobs", json=other, headers=ALICE)
     assert refused.status_code == 422 and "other parameter keys" in refused.text
+
+
+def _fake_view(monkeypatch, tmp_path):
+    """A job's files with a spec and a checkpoint, and the child's answer faked (no Mitsuba)."""
+    from services.jobs import views
+    from services.store.job import JobFiles
+    from services.store.local import FolderStore
+
+    files = JobFiles(FolderStore(tmp_path / "store"), "0123456789abcdef0123")
+    files.write(JobFiles.SPEC, small_job("ndrf-lhs"))
+    files.store.put(files.key(JobFiles.CHECKPOINT), b"weights")
+    rng = np.random.default_rng(0)
+    arrays = {"radiance": rng.random((8, 8, 3), np.float32), "gradients": rng.normal(size=(3, 8, 8, 3)).astype(np.float32),
+              "prb": rng.normal(size=(3, 8, 8, 3)).astype(np.float32)}
+    monkeypatch.setattr(views, "render_in_child", lambda *a: ({"scalars": ["a", "b", "c"], "seconds": {}}, arrays))
+    return files, arrays
+
+
+def test_a_view_writes_every_file_it_names(monkeypatch, tmp_path):
+    from schemas.views import ViewRequest
+    from services.jobs.views import create_view
+    from services.settings import Limits
+
+    files, arrays = _fake_view(monkeypatch, tmp_path)
+    view_id, names, _ = create_view(files, ViewRequest(sensor=0, prb_spp=4), Limits())
+    assert {"radiance.npy", "radiance.png", "gradients.npy", "prb.npy", "view.json"} <= set(names)
+    assert {f"gradient-{p}.png" for p in range(3)} | {f"prb-{p}.png" for p in range(3)} <= set(names)
+    for name in names:
+        assert files.store.exists(files.key(f"views/{view_id}/{name}")), name
+    stored = np.load(files.store.local_path(files.key(f"views/{view_id}/gradients.npy")))
+    np.testing.assert_array_equal(stored, arrays["gradients"])
+
+
+def test_a_view_over_the_jobs_disk_budget_is_refused(monkeypatch, tmp_path):
+    from schemas.views import ViewRequest
+    from services.jobs.views import OverBudget, create_view
+    from services.settings import Limits
+
+    files, _ = _fake_view(monkeypatch, tmp_path)
+    with pytest.raises(OverBudget, match="NDRF_MAX_JOB_BYTES"):
+        create_view(files, ViewRequest(sensor=0), Limits(job_bytes=1 << 20).model_copy(update={"job_bytes": 2000}))
+    assert not list(files.store.keys(files.prefix + "views/"))
