@@ -18,7 +18,7 @@ from fastapi import FastAPI
 
 from api import accesslog, problems
 from api.guard import Guard
-from api.routes import artifacts, events, experiments, health, jobs, scenes
+from api.routes import artifacts, events, experiments, field_views, health, jobs, scenes
 from api.routes.health import Snapshot
 from api.streams import StreamHub
 from services.runtime import build_runtime
@@ -65,7 +65,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     accesslog.install()
     problems.install(app)
-    for module in (jobs, artifacts, events, experiments, scenes, health):
+    for module in (jobs, artifacts, field_views, events, experiments, scenes, health):
         app.include_router(module.router)
     from api.dashboard import mount
 

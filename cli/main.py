@@ -10,6 +10,7 @@ from cli.gradient import gradient_command
 from cli.remote import fetch_command, ls_command, submit_command, watch_command
 from cli.run import run_command
 from cli.service import serve_command, worker_command
+from cli.view import view_command
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -24,7 +25,8 @@ main.add_command(gradient_command)
 main.add_command(run_command)
 main.add_command(serve_command)
 main.add_command(worker_command)
-for command in (experiment_command, compare_command, submit_command, watch_command, fetch_command, ls_command):
+for command in (experiment_command, compare_command, submit_command, watch_command, fetch_command, ls_command,
+                view_command):
     main.add_command(command)
 
 if __name__ == "__main__":

@@ -181,6 +181,19 @@ class EffectOverrides(_Strict):
 #: The optimizers that step from a Jacobian (``services.solver.optimize.optimizers``).
 SECOND_ORDER = ("levenberg-marquardt", "gauss-newton")
 
+class WarmStart(_Strict):
+    """Start from another job's trained fields (and optionally its parameters)."""
+
+    job: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$",
+                     description="Id of a job of the same API key with the same scene and parameter keys (with ndrf "
+                                 "run: the name of a job folder beside --out); its latest checkpoint is used.")
+    parameters: bool = Field(False, description="Also start from that job's parameters (else each parameter's init).")
+    top_up_steps: int | None = Field(None, ge=0, le=100000,
+                                     description="Most training steps of the adaptive top-up that replaces the "
+                                                 "warm-up (it stops when the residuals plateau). Default: a quarter "
+                                                 "of training.warmup_steps.")
+
+
 class JobSpec(_Strict):
     """An inverse-rendering job (paper Sec. 5)."""
 
@@ -257,11 +270,17 @@ class JobSpec(_Strict):
     images_budget: float = Field(0.05, ge=0.0, le=1.0, description="Share of the run's time that images written on "
                                                                    "the default schedule may take.")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed of every random choice; equal seeds give equal runs.")
+    warm_start: WarmStart | None = Field(
+        None, description="Start from another job's L_phi and dL_theta (its latest checkpoint): the warm-up becomes a "
+                          "short adaptive top-up. Refused unless the scene and the parameter keys match. plan.json's "
+                          "warm_start says what was reused.")
 
     def fingerprint(self) -> str:
         """Hash of everything that changes the computation (not the name): a checkpoint is only
-        loaded into the job it belongs to, and an Idempotency-Key only returns the same job."""
-        return hashlib.sha256(self.model_dump_json(exclude={"name"}).encode()).hexdigest()[:16]
+        loaded into the job it belongs to, and an Idempotency-Key only returns the same job. A job
+        without ``warm_start`` hashes as before the field existed."""
+        exclude = {"name"} if self.warm_start is not None else {"name", "warm_start"}
+        return hashlib.sha256(self.model_dump_json(exclude=exclude).encode()).hexdigest()[:16]
 
     @field_validator("adam_betas")
     @classmethod

@@ -47,6 +47,8 @@ class Limits(BaseSettings):
     job_bytes: int = Field(2 << 30, ge=1 << 20, description="Disk budget of one job's files in the store.")
     child_memory_bytes: int = Field(8 << 30, ge=256 << 20, description="Address-space limit of the sandboxed "
                                                                        "process that loads or runs a job.")
+    view_seconds: float = Field(300.0, ge=1.0, description="Wall-clock limit of one view of a job's fields "
+                                                        "(POST /v1/jobs/{id}/views), prb's comparison image included.")
     preflight_seconds: float = Field(120.0, ge=1.0, description="Wall-clock limit of loading a scene at "
                                                                  "submission.")
     active_jobs_per_key: int = Field(32, ge=1, description="Most queued or running jobs of one API key.")

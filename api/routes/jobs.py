@@ -18,6 +18,7 @@ from schemas.records import JobAccepted, JobPage, JobPublic, JobStatus
 from services.jobs.preflight import preflight
 from services.jobs.service import TooManyJobs
 from services.jobs.state import Conflict, UnknownJob
+from services.jobs.warm_start import source_checkpoint
 from services.runtime import Runtime
 
 log = logging.getLogger(__name__)
@@ -54,6 +55,13 @@ async def submit_job(spec: JobSpec, response: Response, runtime: RuntimeDep, cal
             return _accepted(response, existing.id, existing.status, await _fingerprint(spec),
                              existing.fingerprint)
     await validate_job(spec, runtime)
+    if spec.warm_start is not None:  # the source: a job of this key with the same scene and keys
+        try:
+            await anyio.to_thread.run_sync(lambda: source_checkpoint(runtime.service.states, spec, caller.owner,
+                                                                     read=False), limiter=runtime.blocking)
+        except InvalidJob as exc:
+            raise ProblemError(422, "Invalid job", str(exc), slug="invalid-job",
+                               errors=[(exc.field, exc.message)]) from None
 
     def submit():
         return service.submit(spec, caller, idempotency_key, max_active=runtime.settings.limits.active_jobs_per_key)

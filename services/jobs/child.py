@@ -11,6 +11,9 @@
               list each ``list`` folder, to read each ``read`` file and to unmount each ``unmount``
               folder; answers ``probed`` {write, connect, list, read, unmount, uid, capabilities,
               cwd_writable}
+``view``      render a job's fields from a camera (:mod:`services.solver.optimize.field_views`):
+              answers ``viewed`` {scalars, seconds, camera, iteration} with the arrays
+              ``radiance``, ``gradients`` and ``prb`` (when asked), or ``invalid`` {field, message}
 ``run``       run the job (:class:`services.solver.optimize.loop.InverseRenderingRun`), forwarding
            every report as a frame (``plan``, ``targets``, ``progress``, ``iteration``,
            ``checkpoint``) and ending with ``outcome``. SIGUSR1 asks it to cancel, SIGTERM to stop
@@ -179,8 +182,36 @@ def run(start: dict, out) -> None:
     reporter = PipeReporter(out)
     resume = Path(start["resume_file"]).read_bytes() if start.get("resume_file") else None
     scene_file = Path(start["scene_file"]) if start.get("scene_file") else None
-    outcome = InverseRenderingRun(spec, reporter, scene_file=scene_file, resume=resume).execute()
+    warm = Path(start["warm_file"]).read_bytes() if start.get("warm_file") else None
+    outcome = InverseRenderingRun(spec, reporter, scene_file=scene_file, resume=resume, warm=warm).execute()
     write_frame(out, "outcome", asdict(outcome))
+
+
+def view(start: dict, out) -> None:
+    from schemas.errors import InvalidJob
+    from schemas.job import JobSpec
+    from schemas.views import ViewRequest
+    from services.solver.backend import use_torch
+    from services.solver.optimize.field_views import render_view, restore
+
+    use_torch()
+    spec = JobSpec.model_validate(start["spec"])
+    request = ViewRequest.model_validate(start["request"])
+    scene_file = Path(start["scene_file"]) if start.get("scene_file") else None
+    try:
+        restored = restore(spec, Path(start["checkpoint_file"]).read_bytes(), scene_file)
+        result = render_view(restored, request)
+    except InvalidJob as exc:
+        write_frame(out, "invalid", {"field": exc.field, "message": exc.message})
+        return
+    except ValueError as exc:  # a camera that cannot be built, a checkpoint without fields
+        write_frame(out, "invalid", {"field": "view", "message": str(exc)})
+        return
+    blobs = {"radiance": array_bytes(result.radiance), "gradients": array_bytes(result.gradients)}
+    if result.prb is not None:
+        blobs["prb"] = array_bytes(result.prb)
+    write_frame(out, "viewed", {"scalars": result.scalars, "seconds": result.seconds, "camera": result.camera,
+                                "iteration": restored.iteration, "method": restored.method}, blobs)
 
 
 #: The stop the parent asked for (set by the signal handlers, installed first thing in main:
@@ -215,7 +246,7 @@ def main(argv: list[str]) -> int:
         probe(frame[1], out)
         return 0
     _mitsuba_log_to_stderr()
-    {"check": check, "describe": describe, "run": run}[mode](frame[1], out)
+    {"check": check, "describe": describe, "view": view, "run": run}[mode](frame[1], out)
     return 0
 
 

@@ -260,6 +260,13 @@ def exchange(mode: str, start: dict, limits: ChildLimits, cwd: Path, what: str) 
     """Start a child, send it ``start``, and wait (at most ``limits.wall_seconds``) for its one
     answer frame: ``(kind, meta)``. A child that dies or times out raises :class:`ChildFailed`
     with a description for the user."""
+    kind, meta, _ = exchange_frame(mode, start, limits, cwd, what)
+    return kind, meta
+
+
+def exchange_frame(mode: str, start: dict, limits: ChildLimits, cwd: Path,
+                   what: str) -> tuple[str, dict, dict[str, bytes]]:
+    """:func:`exchange`, with the answer's blobs."""
     from services.jobs.frames import FrameError, read_frame, write_frame
 
     child = Child(mode, limits, cwd, label=f"{mode}-{os.getpid()}")
@@ -292,7 +299,7 @@ def exchange(mode: str, start: dict, limits: ChildLimits, cwd: Path, what: str) 
         frame = answer[0] if answer else None
         if not isinstance(frame, tuple):
             raise ChildFailed(child.describe_exit(what))
-        return frame[0], frame[1]
+        return frame[0], frame[1], frame[2]
     finally:
         child.kill()
 

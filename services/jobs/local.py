@@ -18,6 +18,7 @@ from services.jobs.artifacts import JobWriter
 from services.jobs.preflight import upload_limits
 from services.jobs.service import scene_label
 from services.jobs.state import JobStates, now_iso
+from services.jobs.warm_start import source_checkpoint
 from services.queue.base import EventBus
 from services.settings import Limits
 from services.store.job import JobFiles
@@ -63,7 +64,12 @@ def run_local(spec: JobSpec, out: Path, *, base_dir: Path | None = None, resume:
         writer.finish({"status": "failed", "iterations": 0, "seconds": 0.0, "error": str(exc), "field": exc.field})
         return files.read(JobFiles.SUMMARY)
     checkpoint = files.resume_checkpoint() if resume else None
-    outcome = InverseRenderingRun(spec, writer, scene_file=scene_file, resume=checkpoint).execute()
+    try:  # a job folder beside this one (the same store, the same local owner)
+        warm = source_checkpoint(states, spec, "local") if checkpoint is None else None
+    except InvalidJob as exc:
+        writer.finish({"status": "failed", "iterations": 0, "seconds": 0.0, "error": str(exc), "field": exc.field})
+        return files.read(JobFiles.SUMMARY)
+    outcome = InverseRenderingRun(spec, writer, scene_file=scene_file, resume=checkpoint, warm=warm).execute()
     writer.finish(outcome)
     summary = files.read(JobFiles.SUMMARY) or {"status": outcome.status, "iterations": outcome.iterations}
     summary["status"] = outcome.status

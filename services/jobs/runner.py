@@ -35,6 +35,7 @@ from services.jobs.frames import FrameError, array_from, read_frame, write_frame
 from services.jobs.isolation import Child, ChildFailed, ChildLimits, kernel_cache, sandboxed
 from services.jobs.preflight import upload_limits
 from services.jobs.state import Fenced, JobStates
+from services.jobs.warm_start import source_checkpoint
 from services.settings import Limits
 from services.store.base import StoreFull
 from services.store.job import JobFiles
@@ -85,10 +86,18 @@ class AttemptRunner:
         except InvalidJob as exc:
             return self._fail(writer, str(exc), exc.field)
         resume = files.resume_checkpoint()
-        resume_file = None
+        resume_file = warm_file = None
         if resume is not None:
             resume_file = folder / "resume.pt"
             resume_file.write_bytes(resume)
+        elif spec.warm_start is not None:  # the source within this job's tenant only (checked again here)
+            try:
+                warm = source_checkpoint(self.states, spec, self.states.get(job_id).owner)
+            except InvalidJob as exc:
+                return self._fail(writer, str(exc), exc.field)
+            warm_file = folder / "warm.pt"
+            assert warm is not None  # a job with warm_start gets its source's bytes or an InvalidJob
+            warm_file.write_bytes(warm)
         kernels = str(kernel_cache(self.scratch, self.states.get(job_id).owner)) if sandboxed() else None
         limits = ChildLimits(memory_bytes=self.limits.child_memory_bytes, wall_seconds=self.limits.job_seconds,
                              kernel_cache=kernels)
@@ -101,7 +110,8 @@ class AttemptRunner:
         try:
             write_frame(child.stdin, "start", {"spec": spec.model_dump(mode="json"),
                                                     "scene_file": str(scene_file) if scene_file else None,
-                                                    "resume_file": str(resume_file) if resume_file else None})
+                                                    "resume_file": str(resume_file) if resume_file else None,
+                                                    "warm_file": str(warm_file) if warm_file else None})
             child.stdin.close()
         except BrokenPipeError:
             pass

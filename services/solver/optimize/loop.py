@@ -104,11 +104,13 @@ class InverseRenderingRun:
     """
 
     def __init__(self, spec: JobSpec, reporter: RunReporter, *, scene_file: Path | None = None,
-                 resume: bytes | None = None):
+                 resume: bytes | None = None, warm: bytes | None = None):
         self.spec = spec
         self.reporter = reporter
         self.scene_file = scene_file
         self.resume = resume
+        self.warm = warm            # the checkpoint of spec.warm_start's job (services.solver.optimize.warm_start)
+        self.warm_report: dict | None = None
         self.method_name = str(spec.method)  # the method that runs: an auto job's choice once execute() made it
 
     def execute(self) -> RunOutcome:
@@ -193,6 +195,11 @@ class InverseRenderingRun:
                 trainer.load_state_dict(saved["trainer"])
             self.reporter.progress("resumed", {"iteration": state.next_iteration,
                                                "training_steps": trainer.steps if trainer else 0})
+        elif self.warm is not None:
+            from services.solver.optimize.warm_start import apply_warm_start
+
+            state.parameters, self.warm_report = apply_warm_start(spec, self.warm, trainer, prepared.problem,
+                                                                  state.parameters, prepared.lower, prepared.upper)
         prepared.problem.parameters.assign(state.parameters)
         return state
 
@@ -356,6 +363,7 @@ class InverseRenderingRun:
             "training": self.spec.training.model_dump(mode="json"),
             "effects": problem.plan.to_json() if problem.plan is not None else None,
             "iterations": self.spec.iterations,
+            "warm_start": self.warm_report,
         }
 
     def _checkpoint(self, state: RunState, recipe: Recipe, trainer: FieldTrainer | None) -> None:

@@ -256,6 +256,7 @@ class FieldTrainer:
             "optimizers": {name: o.state_dict() for name, o in self.optimizers.items()},
             "schedule": self.schedule.state_dict(),
             "averages": {name: a.state_dict() for name, a in self.averages.items()},
+            "layout": layout_json(self.problem.layout),  # what dL_theta's outputs mean (views, warm starts)
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -271,6 +272,11 @@ class FieldTrainer:
                 average.load_state_dict(saved[name])
             else:  # a checkpoint from before weight averaging: start the average at the live weights
                 average.average.load_state_dict(self.fields()[name].state_dict())
+
+
+def layout_json(layout) -> dict:
+    """The derivative layout as plain data: the active scalars and each one's RGB channels."""
+    return {"scalars": [int(i) for i in layout.scalars], "channels": [[int(c) for c in cs] for cs in layout.channels]}
 
 
 def trainer_for(problem: Problem, method: GradientMethod, config: TrainingConfig, seed: int, *,

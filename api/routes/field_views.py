@@ -1,0 +1,71 @@
+"""``/v1/jobs/{id}/views``: a job's fields rendered from a camera of the caller's choosing (paper
+Fig. 4b), in a sandboxed child, and the files of each view."""
+
+from __future__ import annotations
+
+import re
+from typing import Annotated
+
+import anyio
+from fastapi import APIRouter
+from fastapi import Path as PathParam
+from fastapi.responses import FileResponse, Response
+
+from api.bodies import GuardedRoute
+from api.deps import CallerDep, ReaderDep, RuntimeDep, files_or_404
+from api.problems import ProblemDetails, ProblemError
+from schemas.errors import InvalidJob
+from schemas.views import ViewFiles, ViewRequest
+from services.jobs.views import VIEW_FILE_PATTERN, VIEW_ID_PATTERN, NoCheckpoint, OverBudget, create_view
+
+router = APIRouter(route_class=GuardedRoute, prefix="/v1/jobs/{job_id}/views", tags=["views"],
+                   responses={401: {"model": ProblemDetails}, 404: {"model": ProblemDetails}})
+
+MEDIA = {"png": "image/png", "npy": "application/x-npy", "json": "application/json"}
+
+
+def _url(job_id: str, view_id: str, name: str) -> str:
+    return f"/v1/jobs/{job_id}/views/{view_id}/{name}"
+
+
+@router.post("", status_code=201, response_model=ViewFiles,
+             responses={409: {"model": ProblemDetails}, 422: {"model": ProblemDetails}},
+             summary="Render the job's fields from a camera")
+async def create(job_id: str, request: ViewRequest, runtime: RuntimeDep, caller: CallerDep):
+    """Render ``L_phi`` and every scalar's ``dL_theta`` at the first hits of the camera's rays, from
+    the job's latest checkpoint (a running job's too), and ``prb``'s gradient image from the same
+    camera when ``prb_spp`` is set. A job without a checkpoint yet, or whose method trains no
+    field, or whose files would exceed the job's disk budget, is a ``409``; a camera that cannot be
+    built a ``422``."""
+    files = files_or_404(runtime, job_id, caller)
+    try:
+        view_id, names, meta = await anyio.to_thread.run_sync(create_view, files, request, runtime.settings.limits,
+                                                              limiter=runtime.blocking)
+    except NoCheckpoint as exc:
+        raise ProblemError(409, "Conflict", str(exc), slug="no-checkpoint") from None
+    except OverBudget as exc:
+        raise ProblemError(409, "Conflict", str(exc), slug="job-budget") from None
+    except InvalidJob as exc:
+        status = 409 if "trained no field" in exc.message else 422
+        raise ProblemError(status, "Invalid view", str(exc), slug="invalid-view",
+                           errors=[(exc.field, exc.message)]) from None
+    return ViewFiles(id=view_id, files={name: _url(job_id, view_id, name) for name in names},
+                     scalars=meta.get("scalars", []), seconds=meta.get("seconds", {}),
+                     iteration=meta.get("iteration"))
+
+
+@router.get("/{view_id}/{name}", summary="A file of a view",
+            responses={200: {"content": {media: {} for media in MEDIA.values()}}})
+def view_file(job_id: str, runtime: RuntimeDep, caller: ReaderDep,
+              view_id: Annotated[str, PathParam(pattern=VIEW_ID_PATTERN, description="The view's id.")],
+              name: Annotated[str, PathParam(pattern=VIEW_FILE_PATTERN, description="A file the view wrote.")]):
+    files = files_or_404(runtime, job_id, caller)
+    key = files.key(f"views/{view_id}/{name}")
+    media = MEDIA[re.sub(r".*\.", "", name)]
+    path = files.store.local_path(key)
+    if path is not None:
+        return FileResponse(path, media_type=media)
+    data = files.store.get(key)
+    if data is None:
+        raise ProblemError(404, "Not found", f"view {view_id} has no file {name}", slug="missing-artifact")
+    return Response(data, media_type=media)
