@@ -56,14 +56,19 @@ Scalars = float | list[float]
 
 
 class ParameterSpec(_Strict):
-    """One scene parameter to recover (a ``mi.traverse`` key)."""
+    """One scene parameter to recover (a ``mi.traverse`` key). A bitmap texture's ``data`` (e.g.
+    ``wall.reflectance.data``) is a texture parameter: all its texels are recovered (prb only)."""
 
-    key: str = Field(description="Mitsuba traverse key, e.g. 'red.reflectance.value'.", min_length=1, max_length=256)
+    key: str = Field(description="Mitsuba traverse key, e.g. 'red.reflectance.value', or a bitmap texture's "
+                                 "data, e.g. 'wall.reflectance.data' (a texture parameter).",
+                     min_length=1, max_length=256)
     init: Scalars | None = Field(None, description="Initial value (a number, or one per component; a single "
-                                                   "number is broadcast). Default: the scene's own value.")
+                                                   "number is broadcast; for a texture also one per channel, "
+                                                   "repeated at every texel). Default: the scene's own value "
+                                                   "(for a texture: the scene file's texture).")
     bounds: tuple[float, float] | None = Field(
-        None, description="[lower, upper] projection bounds after each step. Default: [0, 1] for BSDF "
-                          "parameters, [0, +inf) for emitters.")
+        None, description="[lower, upper] projection bounds after each step (per texel for a texture). Default: "
+                          "[0, 1] for BSDF parameters, [0, +inf) for emitters.")
 
     @field_validator("bounds")
     @classmethod
@@ -78,7 +83,9 @@ class ParameterSpec(_Strict):
 class SyntheticTarget(_Strict):
     """Render the target from the same scene with known parameter values."""
 
-    values: dict[str, Scalars] = Field(description="Parameter values of the target, by key.")
+    values: dict[str, Scalars | None] = Field(
+        description="Parameter values of the target, by key (as a parameter's init); null: the scene's own value "
+                    "(for a texture, the scene file's texture: the usual synthetic texture target).")
     spp: int = Field(256, ge=1, le=65536, description="Samples per pixel of the target rendering.")
     max_depth: int | None = Field(
         None, ge=1, le=1024, description="Path depth of the target rendering. Default: unbounded, paths ended "

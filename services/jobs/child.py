@@ -54,6 +54,10 @@ class PipeReporter:
         blobs |= {f"gradients-{s}": array_bytes(a) for s, a in (gradients or {}).items()}
         write_frame(self.stream, "iteration", {"record": record.model_dump(mode="json")}, blobs)
 
+    def textures(self, iteration, images):
+        write_frame(self.stream, "textures", {"iteration": iteration, "names": sorted(images)},
+                    {f"texture-{i}": array_bytes(images[name]) for i, name in enumerate(sorted(images))})
+
     def checkpoint(self, state, next_iteration):
         write_frame(self.stream, "checkpoint", {"next_iteration": next_iteration}, {"state": state})
 
@@ -96,7 +100,7 @@ def check(start: dict, out) -> None:
     spec = JobSpec.model_validate(start["spec"])
     scene_file = Path(start["scene_file"]) if start.get("scene_file") else None
     try:
-        checked = check_job(spec, scene_file, max_scalars=start.get("max_scalars"))
+        checked = check_job(spec, scene_file, max_scalars=start.get("max_scalars"), max_texels=start.get("max_texels"))
     except InvalidJob as exc:
         write_frame(out, "invalid", {"field": exc.field, "message": exc.message})
         return

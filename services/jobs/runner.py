@@ -193,6 +193,10 @@ class AttemptRunner:
             gradients = {int(k.split("-", 1)[1]): array_from(b, ndim=4) for k, b in blobs.items()
                          if k.startswith("gradients-")}
             writer.iteration(IterationRecord.model_validate(meta["record"]), renders or None, gradients or None)
+        elif kind == "textures":
+            names = [str(name) for name in meta["names"]]
+            iteration = None if meta["iteration"] is None else int(meta["iteration"])
+            writer.textures(iteration, {name: array_from(blobs[f"texture-{i}"], ndim=3) for i, name in enumerate(names)})
         elif kind == "checkpoint":
             writer.checkpoint(blobs["state"], int(meta["next_iteration"]))
         else:

@@ -42,6 +42,7 @@ from services.solver.optimize.optimizers.gauss_newton import BLOCK, hessian_of, 
 from services.solver.optimize.recipe import Recipe, choose_recipe, grow_batch
 from services.solver.optimize.report import RunAborted, RunOutcome, RunReporter, StopReason
 from services.solver.optimize.setup import Prepared, prepare
+from services.solver.optimize.textures import TextureReport, record_fields
 from services.solver.optimize.views import ViewStream
 from services.solver.seeds import derive_seed
 from services.solver.training.trainer import FieldTrainer, fields_of
@@ -109,6 +110,7 @@ class InverseRenderingRun:
         self.scene_file = scene_file
         self.resume = resume
         self.method_name = str(spec.method)  # the method that runs: an auto job's choice once execute() made it
+        self.listed: TextureReport | None = None  # which scalars reports list (textures are summarised)
 
     def execute(self) -> RunOutcome:
         """Run to the end, to a cancel or to an interruption. A job that fails returns a failed
@@ -128,6 +130,7 @@ class InverseRenderingRun:
         state = trainer = None
         try:
             prepared = prepare(self.spec, scene_file=self.scene_file)
+            self.listed = prepared.textures
             recipe = choose_recipe(self.spec, prepared.problem, len(prepared.targets))
             self.method_name = recipe.method
             built = build(prepared, recipe.method, recipe.jacobian)
@@ -144,6 +147,8 @@ class InverseRenderingRun:
                     self.reporter.plan(self._plan(prepared, built, recipe))
                 if state.next_iteration % self.spec.checkpoint_every == 0 or state.next_iteration == self.spec.iterations:
                     self._checkpoint(state, recipe, trainer)
+            if prepared.textures:
+                self.reporter.textures(None, prepared.textures.images(state.parameters))
             if isinstance(self.reporter, BackgroundReporter):
                 self.reporter.flush()  # success only once every report is written
             return self._outcome(Outcome.SUCCEEDED, state, started)
@@ -278,9 +283,12 @@ class InverseRenderingRun:
             problem.parameters.assign(updated)
         t4 = time.perf_counter()
         state.images.spent(t4 - t3, t4 - t0, written=write)
+        if write and prepared.textures:  # each texture and its gradient (a texture too), never P images
+            self.reporter.textures(k, prepared.textures.images(state.parameters) | prepared.textures.gradients(dz_dp))
         record = IterationRecord(
-            iteration=k, loss=loss, parameters=state.parameters.tolist(), updated_parameters=updated.tolist(),
-            dz_dp=dz_dp.tolist(), learning_rate=lr, images=write, sanitized=dict(problem.sanitized),
+            iteration=k, loss=loss, **record_fields(prepared.textures, state.parameters, updated, dz_dp,
+                                                    prepared.target_values),
+            learning_rate=lr, images=write, sanitized=dict(problem.sanitized),
             views=batch.sensors, optimizer=state.optimizer.describe() or None,
             seconds={"training": t1 - t0, "gradient": t2 - t1, "step": t3 - t2, "images": t4 - t3},
             parameter_error=(float(np.max(np.abs(state.parameters - prepared.target_values)))
@@ -332,7 +340,7 @@ class InverseRenderingRun:
     # -------------------------------------------------------------- reports
 
     def _plan(self, prepared: Prepared, built: Built, recipe: Recipe) -> dict:
-        problem, trainer = prepared.problem, built.trainer
+        problem, trainer, textures = prepared.problem, built.trainer, prepared.textures
         width, height = problem.scene.resolution()
         return {
             "method": self.method_name,
@@ -340,12 +348,13 @@ class InverseRenderingRun:
             "realised_by": type(built.method).__name__,
             "fields": {"radiance": trainer is not None and trainer.radiance is not None,
                        "differential": trainer is not None and trainer.differential is not None},
-            "scalars": problem.parameters.labels,
+            "scalars": textures.labels,
             "keys": problem.parameters.keys,
-            "init": prepared.init.tolist(),
-            "lower": prepared.lower.tolist(),
-            "upper": [u if np.isfinite(u) else None for u in prepared.upper.tolist()],
-            "target_values": None if prepared.target_values is None else prepared.target_values.tolist(),
+            "init": textures.scalars(prepared.init),
+            "lower": textures.scalars(prepared.lower),
+            "upper": [u if np.isfinite(u) else None for u in textures.scalars(prepared.upper)],
+            "target_values": None if prepared.target_values is None else textures.scalars(prepared.target_values),
+            "textures": textures.plan(prepared.init, prepared.lower, prepared.upper, prepared.target_values),
             "sensors": sorted(prepared.targets),
             "resolution": [width, height],
             "depths": prepared.depths,
@@ -368,7 +377,8 @@ class InverseRenderingRun:
                  field: str | None = None) -> RunOutcome:
         return RunOutcome(status=status, iterations=state.next_iteration if state is not None else 0,
                           seconds=time.perf_counter() - started,
-                          parameters=state.parameters.tolist() if state is not None else None,
+                          parameters=None if state is None else (self.listed.scalars(state.parameters) if self.listed
+                                                                 is not None else state.parameters.tolist()),
                           error=error, field=field)
 
 

@@ -101,6 +101,9 @@ def choose_recipe(spec: JobSpec, problem: Problem, sensors: int) -> Recipe:
         recipe.decide("optimizer", "adam", f"the {spec.loss} loss has no Gauss-Newton model")
     elif problem.layout.active == 0:
         recipe.decide("optimizer", "adam", "no scalar changes the image: nothing to model")
+    elif problem.parameters.has_textures:
+        recipe.decide("optimizer", "adam", f"a texture's {problem.parameters.n} scalars: a Gauss-Newton step would "
+                                           f"solve with a P x P curvature (services.solver.optimize.carry)")
     else:
         renders = jacobian_renders(problem) if method == Method.PRB and spec.jacobian == "method" else 0
         if renders <= MAX_JACOBIAN_RENDERS:
