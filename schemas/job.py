@@ -183,6 +183,27 @@ class EffectOverrides(_Strict):
                                                    "(an RGB albedo component changes one channel).")
 
 
+# --------------------------------------------------------------------------------- textures
+
+class TextureSettings(_Strict):
+    """How texture parameters are optimized (ignored by jobs without one;
+    ``services.solver.optimize.regularize``). Each setting's effect is measured in
+    ``bench/results/textures.md``."""
+
+    smoothness: Literal["none", "laplacian", "tv"] = Field(
+        "none", description="A smoothness penalty on differences between neighbouring texels, added to the step's "
+                            "gradient (the reported loss stays the image loss): 'laplacian' (squared differences) "
+                            "or 'tv' (total variation, keeps edges).")
+    smoothness_weight: float = Field(1.0, ge=0.0, le=1e6, description="Weight of the smoothness penalty, which is "
+                                                                      "averaged over neighbour pairs (independent "
+                                                                      "of the texture's size).")
+    coarse_to_fine: int = Field(0, ge=0, le=8, description="Levels of a coarse-to-fine schedule: the first half of "
+                                                           "the iterations is split into this many stages that "
+                                                           "optimize the texture at 1/2^L, ..., 1/2 of its "
+                                                           "resolution (the gradient averaged over blocks); 0: "
+                                                           "full resolution throughout.")
+
+
 # -------------------------------------------------------------------------------------- job
 
 #: The optimizers that step from a Jacobian (``services.solver.optimize.optimizers``).
@@ -254,6 +275,8 @@ class JobSpec(_Strict):
     render: RenderSpec = Field(default_factory=RenderSpec, description="Rendering settings.")
     training: TrainingConfig = Field(default_factory=TrainingConfig, description="Training of L_phi and dL_theta.")
     effects: EffectOverrides = Field(default_factory=EffectOverrides, description="Overrides of the effect planner.")
+    textures: TextureSettings = Field(default_factory=TextureSettings,
+                                      description="Regularization of texture parameters (a bitmap's data).")
     checkpoint_every: int = Field(10, ge=1, le=100000, description="Write a checkpoint every K iterations.")
     images_every: int | None = Field(
         None, ge=1, le=100000, description="Write the renders of every view and the gradient images every K "

@@ -140,3 +140,39 @@ def test_jobs_without_textures_keep_every_scalar_listed(mi):
     assert both.images(flat)[KEY][0, 0].tolist() == [3.0, 4.0, 5.0]
     plain = TextureReport(ParameterSet(scene.params, ["red.reflectance.value"]))
     assert not plain and plain.scalars(flat[:3]) == [0.0, 1.0, 2.0]
+
+
+@pytest.mark.parametrize("kind", ["laplacian", "tv"])
+def test_smoothness_gradient_matches_finite_differences_of_the_penalty(kind):
+    """The penalty's gradient against central differences of the penalty itself (h = 1e-6;
+    tolerance 1e-6 relative to the largest entry: float64, a smooth function)."""
+    from services.solver.optimize.regularize import TV_EPSILON, smoothness_gradient
+
+    t = np.random.default_rng(1).uniform(0, 1, (3, 4, 2))
+
+    def penalty(x):
+        diffs = np.concatenate([np.diff(x, axis=0).ravel(), np.diff(x, axis=1).ravel()])
+        terms = diffs ** 2 if kind == "laplacian" else np.sqrt(diffs ** 2 + TV_EPSILON ** 2)
+        return 2.5 * terms.mean()
+
+    analytic = smoothness_gradient(t, kind, 2.5)
+    numeric = np.zeros_like(t)
+    for index in np.ndindex(t.shape):
+        up, down = t.copy(), t.copy()
+        up[index] += 1e-6
+        down[index] -= 1e-6
+        numeric[index] = (penalty(up) - penalty(down)) / 2e-6
+    assert np.max(np.abs(analytic - numeric)) <= 1e-6 * np.max(np.abs(numeric))
+
+
+def test_coarse_to_fine_pools_the_gradient_in_blocks_then_lets_go():
+    from schemas.job import TextureSettings
+    from services.solver.optimize.regularize import block_size, pooled
+
+    settings = TextureSettings(coarse_to_fine=2)
+    assert [block_size(settings, k, 8) for k in range(8)] == [4, 4, 2, 2, 1, 1, 1, 1]
+    assert block_size(TextureSettings(), 0, 8) == 1
+    g = np.arange(5 * 5 * 1, dtype=np.float64).reshape(5, 5, 1)
+    out = pooled(g, 2)
+    assert out[0, 0, 0] == out[1, 1, 0] == np.mean(g[:2, :2]) and out[4, 4, 0] == g[4, 4, 0]
+    assert np.allclose(out[:4, :4].reshape(2, 2, 2, 2).std(axis=(1, 3)), 0.0)

@@ -40,6 +40,7 @@ from services.solver.optimize.images import ImageSchedule, render_views
 from services.solver.optimize.optimizers import ParameterOptimizer, make_optimizer
 from services.solver.optimize.optimizers.gauss_newton import BLOCK, hessian_of, jacobian_matrix
 from services.solver.optimize.recipe import Recipe, choose_recipe, grow_batch
+from services.solver.optimize.regularize import regularized
 from services.solver.optimize.report import RunAborted, RunOutcome, RunReporter, StopReason
 from services.solver.optimize.setup import Prepared, prepare
 from services.solver.optimize.textures import TextureReport, record_fields
@@ -269,7 +270,8 @@ class InverseRenderingRun:
             state.hessian = self._curvature(problem, source, fields, jacobians, seeds, recipe, state,
                                             len(prepared.targets), learning_rate(spec, k))
         lr = learning_rate(spec, k)
-        updated = state.optimizer.step(state.parameters, dz_dp, prepared.lower, prepared.upper, lr=lr,
+        step_gradient = regularized(prepared.textures, spec.textures, dz_dp, state.parameters, k, spec.iterations)
+        updated = state.optimizer.step(state.parameters, step_gradient, prepared.lower, prepared.upper, lr=lr,
                                        hessian=state.hessian)
         state.views_offset = batch.offset
         problem.parameters.assign(updated)
