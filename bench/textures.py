@@ -1,0 +1,171 @@
+"""Texture recovery with ``prb``: a 64 x 64 albedo (12,288 scalars) on the back wall of the
+textured Cornell box (``textured-box``), recovered from a 0.5 grey from 4 views; and one
+iteration of a 1000 x 1000 texture (1 Mi texels, 3 Mi scalars).
+
+``python -m bench.textures [--iterations 300] [--variants plain,laplacian,tv,coarse] [--million]``
+
+Recovery: the 4 target views are rendered once (``--target-spp``, unbounded paths with Russian
+roulette) and given to every variant as target images, so that the variants differ only in their
+``textures`` settings. Each variant is the job through ``run_local`` (``method`` prb, ``optimizer``
+adam with learning rate 0.03 decaying 10x, every view at 16 spp per iteration: at one view and 1 spp
+Adam's steps stay noise-dominated near 20 dB in the runs made), writing its texture
+every ``--every`` iterations; the texture PSNR against the true texture
+(:func:`services.solver.scene.textured.true_albedo`, peak 1) is read from those files. Seconds run
+on the events' clock from the plan (target rendering is outside it). Reported per variant: seconds
+per iteration (median), the first written iteration at >= 30 dB and its seconds, the final PSNR.
+
+``--million``: the same scene as XML with a 1000 x 1000 EXR texture and one 128 x 128 view, a job of
+``--million-iterations`` iterations; reported: the iterations' seconds (median of the record's
+phases), the preparation's seconds and the process's peak resident memory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import json
+import logging
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench.common import machine, markdown_table, write_markdown
+
+log = logging.getLogger(__name__)
+
+ROOT = Path(__file__).resolve().parent.parent
+KEY = "wall.reflectance.data"
+VARIANTS = {
+    "plain": {},
+    "laplacian": {"smoothness": "laplacian", "smoothness_weight": 0.1},
+    "tv": {"smoothness": "tv", "smoothness_weight": 0.03},
+    "coarse": {"coarse_to_fine": 3},
+}
+
+
+def _job(iterations: int, every: int, textures: dict, targets: dict, scene: dict | None = None) -> dict:
+    return {"scene": scene or {"builtin": "textured-box"}, "parameters": [{"key": KEY, "init": 0.5}],
+            "targets": targets, "iterations": iterations, "method": "prb", "optimizer": "adam",
+            "learning_rate": 0.03, "views_per_iteration": 4, "render": {"spp": 16, "gradient_spp": 16},
+            "images_every": every, "checkpoint_every": 100000, "textures": textures}
+
+
+def render_targets(spp: int) -> dict:
+    """The 4 views at the true texture as target images (base64 npy)."""
+    from schemas.job import JobSpec
+    from services.solver.optimize.setup import prepare
+    from services.store.images import npy_bytes
+
+    spec = JobSpec.model_validate(_job(1, 1, {}, {"synthetic": {"values": {KEY: None}, "spp": spp}}))
+    prepared = prepare(spec)
+    return {"images": [{"sensor": s, "data": base64.b64encode(npy_bytes(np.asarray(image, np.float32))).decode()}
+                       for s, image in sorted(prepared.targets.items())]}
+
+
+def psnr(value: np.ndarray, truth: np.ndarray) -> float:
+    mse = float(np.mean((np.asarray(value, np.float64) - truth) ** 2))
+    return 10.0 * float(np.log10(1.0 / mse))
+
+
+def run_variant(name: str, iterations: int, every: int, targets: dict) -> dict:
+    from schemas.job import JobSpec
+    from services.jobs.local import run_local
+    from services.solver.scene.textured import true_albedo
+
+    truth = true_albedo().astype(np.float64)
+    clock: dict[int, float] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        start: list[float] = []
+
+        def on_event(event: dict) -> None:
+            if event.get("type") == "plan" and not start:
+                start.append(time.perf_counter())
+            elif event.get("type") == "iteration":
+                clock[int(event["iteration"])] = time.perf_counter() - start[0]
+
+        job = _job(iterations, every, VARIANTS[name], targets)
+        summary = run_local(JobSpec.model_validate(job), Path(tmp) / "job", on_event=on_event)
+        folder = Path(tmp) / "job"
+        curve = []
+        for k in sorted(clock):
+            written = folder / "iterations" / f"{k:06d}" / "textures" / f"{KEY}.npy"
+            if written.exists():  # the texture the step of iteration k was taken at
+                curve.append({"iteration": k, "seconds": clock[k], "psnr": psnr(np.load(written), truth)})
+        final = psnr(np.load(folder / summary["textures"][KEY]["npy"]), truth)
+    steps = np.diff([0.0] + [clock[k] for k in sorted(clock)])
+    reached = next((c for c in curve if c["psnr"] >= 30.0), None)
+    row = {"variant": name, "settings": VARIANTS[name], "status": summary["status"], "iterations": len(clock),
+           "seconds": clock[max(clock)] if clock else None, "seconds_per_iteration": float(np.median(steps)),
+           "reached_30db": reached, "final_psnr": final, "curve": curve}
+    log.info("%s: final %.2f dB, reached 30 dB at %s", name, final, reached)
+    return row
+
+
+def run_million(iterations: int) -> dict:
+    from schemas.job import JobSpec
+    from services.jobs.local import run_local
+    from services.solver.scene.textured import write_textured_box
+
+    with tempfile.TemporaryDirectory() as tmp:
+        scene = write_textured_box(Path(tmp) / "scene", size=1000, views=1, film=128)
+        job = _job(iterations, 100000, {}, {"synthetic": {"values": {KEY: None}, "spp": 4}},
+                   scene={"path": str(scene)})
+        job.update(views_per_iteration=1, render={"spp": 1, "gradient_spp": 1})
+        started = time.perf_counter()
+        summary = run_local(JobSpec.model_validate(job), Path(tmp) / "job", base_dir=Path(tmp))
+        total = time.perf_counter() - started
+        folder = Path(tmp) / "job"
+        records = [json.loads(p.read_text()) for p in sorted(folder.glob("iterations/*/record.json"))]
+        plan = json.loads((folder / "plan.json").read_text())
+        final = np.load(folder / summary["textures"][KEY]["npy"])
+    per_iteration = [r["seconds"]["gradient"] + r["seconds"]["step"] for r in records]
+    return {"status": summary["status"], "texels": int(final.shape[0] * final.shape[1]), "shape": list(final.shape),
+            "iterations": len(records), "gradient_and_step_seconds": per_iteration,
+            "images_seconds": [r["seconds"]["images"] for r in records], "prepared_seconds": plan["prepared_seconds"],
+            "total_seconds": total, "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m bench.textures", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--iterations", type=int, default=300)
+    parser.add_argument("--every", type=int, default=25, help="write (and measure) the texture every K iterations")
+    parser.add_argument("--target-spp", type=int, default=1024)
+    parser.add_argument("--variants", default=",".join(VARIANTS))
+    parser.add_argument("--million", action="store_true", help="also time a 1000 x 1000 texture")
+    parser.add_argument("--million-iterations", type=int, default=2)
+    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "textures.json")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    rows = []
+    names = [v for v in args.variants.split(",") if v]
+    if names:
+        started = time.perf_counter()
+        targets = render_targets(args.target_spp)
+        log.info("targets rendered in %.1f s", time.perf_counter() - started)
+        rows = [run_variant(name, args.iterations, args.every, targets) for name in names]
+    million = run_million(args.million_iterations) if args.million else None
+    args.out.write_text(json.dumps({"machine": machine(), "rows": rows, "million": million}, indent=1))
+    lines = [[r["variant"], json.dumps(r["settings"]) if r["settings"] else "-", r["iterations"],
+              f"{r['seconds_per_iteration']:.3f}",
+              f"{r['reached_30db']['iteration']} ({r['reached_30db']['seconds']:.0f} s)" if r["reached_30db"] else "never",
+              f"{r['final_psnr']:.2f}", f"{r['seconds']:.0f}"] for r in rows]
+    text = markdown_table(["variant", "textures settings", "iterations", "s / iteration", "first written "
+                           "iteration >= 30 dB", "final PSNR (dB)", "seconds"], lines) if rows else ""
+    if million is not None:
+        text += ("\n\n1000 x 1000 texture (" + f"{million['texels']} texels, {3 * million['texels']} scalars): "
+                 f"{million['status']}; gradient + step seconds per iteration "
+                 f"{', '.join(f'{s:.2f}' for s in million['gradient_and_step_seconds'])}; images (texture files) "
+                 f"{', '.join(f'{s:.2f}' for s in million['images_seconds'])} s; preparation "
+                 f"{', '.join(f'{k} {v:.1f} s' for k, v in million['prepared_seconds'].items())}; whole job "
+                 f"{million['total_seconds']:.1f} s; peak resident memory of the process "
+                 f"{million['peak_rss_mib']:.0f} MiB")
+    write_markdown(args.out, "bench.textures", argv, text)
+    log.info("\n%s", text)
+
+
+if __name__ == "__main__":
+    main()
