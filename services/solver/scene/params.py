@@ -132,7 +132,7 @@ class ParameterSet:
                 known = key in params.keys()  # noqa: SIM118 (SceneParameters is not a dict)
                 reason = "is a key, but not a differentiable material or emitter parameter" if known else (
                     "is not a key of this scene")
-                if known and isinstance(params[key], mi.TensorXu8):
+                if known and type(params[key]).__name__ == "TensorXu8":
                     reason = ("is an 8-bit texture: Mitsuba keeps an 8-bit image file (PNG, JPEG) as integers, which "
                               "have no derivative; give the texture as a float image (EXR)")
                 raise ValueError(f"parameter {key!r} {reason}; optimizable keys: {', '.join(allowed) or 'none'}")
