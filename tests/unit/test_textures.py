@@ -176,3 +176,29 @@ def test_coarse_to_fine_pools_the_gradient_in_blocks_then_lets_go():
     out = pooled(g, 2)
     assert out[0, 0, 0] == out[1, 1, 0] == np.mean(g[:2, :2]) and out[4, 4, 0] == g[4, 4, 0]
     assert np.allclose(out[:4, :4].reshape(2, 2, 2, 2).std(axis=(1, 3)), 0.0)
+
+
+def test_texture_reports_cross_the_sandbox_pipe():
+    """What the sandboxed child sends (PipeReporter) is what the parent's writer receives."""
+    import io
+
+    from services.jobs.child import PipeReporter
+    from services.jobs.frames import read_frame
+    from services.jobs.runner import AttemptRunner
+
+    class Writer:
+        got: list = []
+
+        def textures(self, iteration, images):
+            self.got.append((iteration, images))
+
+    stream = io.BytesIO()
+    value = np.random.default_rng(2).uniform(0, 1, (5, 7, 3)).astype(np.float32)
+    PipeReporter(stream).textures(4, {KEY: value, f"{KEY}.dz_dp": -value})
+    PipeReporter(stream).textures(None, {KEY: value})
+    stream.seek(0)
+    writer = Writer()
+    while (frame := read_frame(stream)) is not None:
+        AttemptRunner._dispatch(writer, *frame)   # type: ignore[arg-type]
+    assert [g[0] for g in writer.got] == [4, None]
+    assert np.array_equal(writer.got[0][1][f"{KEY}.dz_dp"], -value) and np.array_equal(writer.got[1][1][KEY], value)
