@@ -202,3 +202,10 @@ def test_texture_reports_cross_the_sandbox_pipe():
         AttemptRunner._dispatch(writer, *frame)   # type: ignore[arg-type]
     assert [g[0] for g in writer.got] == [4, None]
     assert np.array_equal(writer.got[0][1][f"{KEY}.dz_dp"], -value) and np.array_equal(writer.got[1][1][KEY], value)
+
+
+def test_per_scalar_gradient_images_of_a_texture_job_are_refused(mi):
+    from services.solver.optimize.evaluate import evaluate_gradient
+
+    with pytest.raises(InvalidJob, match="one per scalar, 12288 for a texture job"):
+        evaluate_gradient(_job(method="prb"), "prb")
