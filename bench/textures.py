@@ -43,6 +43,8 @@ VARIANTS = {
     "laplacian": {"smoothness": "laplacian", "smoothness_weight": 0.1},
     "tv": {"smoothness": "tv", "smoothness_weight": 0.03},
     "coarse": {"coarse_to_fine": 3},
+    "laplacian-small": {"smoothness": "laplacian", "smoothness_weight": 0.01},
+    "tv-small": {"smoothness": "tv", "smoothness_weight": 0.003},
 }
 
 
