@@ -209,3 +209,21 @@ def test_per_scalar_gradient_images_of_a_texture_job_are_refused(mi):
 
     with pytest.raises(InvalidJob, match="one per scalar, 12288 for a texture job"):
         evaluate_gradient(_job(method="prb"), "prb")
+
+
+def test_auto_gives_a_texture_job_every_view_and_16_spp_unless_set():
+    from types import SimpleNamespace
+
+    from services.solver.estimators.layout import DerivativeLayout
+    from services.solver.optimize.recipe import TEXTURE_SPP, choose_recipe
+
+    problem = SimpleNamespace(layout=DerivativeLayout.by_component([48]),
+                              parameters=SimpleNamespace(has_textures=True, n=48))
+    recipe = choose_recipe(_job(), problem, 4)   # type: ignore[arg-type]
+    assert (recipe.method, recipe.optimizer, recipe.views, recipe.spp, recipe.gradient_spp) == (
+        "prb", "adam", 4, TEXTURE_SPP, TEXTURE_SPP)
+    assert not recipe.adaptive_views and any("every view" in d.reason for d in recipe.decisions)
+    mine = choose_recipe(_job(render={"resolution": [16, 16], "spp": 2}), problem, 4)   # type: ignore[arg-type]
+    assert (mine.views, mine.spp, mine.gradient_spp) == (4, 2, 1)
+    chosen = choose_recipe(_job(views_per_iteration=2), problem, 4)   # type: ignore[arg-type]
+    assert (chosen.views, chosen.spp) == (2, 1)
