@@ -123,8 +123,8 @@ def describe(start: dict, out) -> None:
     except (RuntimeError, OSError, ValueError, InvalidJob) as exc:
         write_frame(out, "invalid", {"field": "scene.xml", "message": f"Mitsuba could not load the scene: {exc}"})
         return
-    parameters = [{"key": p.key, "size": p.size, "owner": p.owner, "owner_type": p.owner_type, "value": list(p.value)}
-                  for p in differentiable_parameters(scene.params)]
+    parameters = [{"key": p.key, "size": p.size, "owner": p.owner, "owner_type": p.owner_type, "value": list(p.value),
+                   "shape": None if p.shape is None else list(p.shape)} for p in differentiable_parameters(scene.params)]
     sensors = [list(scene.resolution(i)) for i in range(scene.sensor_count)]
     write_frame(out, "described", {"scene": {"parameters": parameters, "sensors": sensors}})
 

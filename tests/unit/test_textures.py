@@ -227,3 +227,20 @@ def test_auto_gives_a_texture_job_every_view_and_16_spp_unless_set():
     assert (mine.views, mine.spp, mine.gradient_spp) == (4, 2, 1)
     chosen = choose_recipe(_job(views_per_iteration=2), problem, 4)   # type: ignore[arg-type]
     assert (chosen.views, chosen.spp) == (2, 1)
+
+
+def test_scene_description_gives_a_texture_its_shape_and_mean(mi):
+    import io
+
+    from services.jobs.child import describe
+    from services.jobs.frames import read_frame
+
+    out = io.BytesIO()
+    describe({"scene": {"builtin": "textured-box"}}, out)
+    out.seek(0)
+    kind, meta, _ = read_frame(out)
+    assert kind == "described"
+    wall = next(p for p in meta["scene"]["parameters"] if p["key"] == KEY)
+    assert wall["shape"] == [64, 64, 3] and wall["size"] == 12288 and len(wall["value"]) == 3
+    red = next(p for p in meta["scene"]["parameters"] if p["key"] == "red.reflectance.value")
+    assert red["shape"] is None and len(red["value"]) == 3
