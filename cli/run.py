@@ -31,6 +31,8 @@ def _progress_hooks(total: int):
         if kind == "iteration":
             progress.update(task, completed=event["iteration"] + 1, description="optimizing",
                             loss=f"{event['loss']:.4g}")
+        elif kind == "preparing":
+            progress.update(task, description=event["what"])
         elif kind == "resumed":
             progress.update(task, completed=event["iteration"], description="resumed")
         elif kind == "warmup":

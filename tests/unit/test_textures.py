@@ -69,8 +69,12 @@ def test_texture_job_reports_summaries_and_files(mi, tmp_path):
     from services.jobs.local import run_local
 
     spec = _job(images_every=2)
-    summary = run_local(spec, tmp_path / "job")
+    events: list[dict] = []
+    summary = run_local(spec, tmp_path / "job", on_event=events.append)
     assert summary["status"] == "succeeded", summary
+    preparing = [e["what"] for e in events if e["type"] == "preparing"]   # said before the plan, not "starting"
+    assert preparing == ["loading and checking the scene", "rendering 4 synthetic target(s) at 16 spp"]
+    assert [e["type"] for e in events].index("plan") > [e["type"] for e in events].index("preparing")
     assert summary["textures"][KEY] == {"npy": f"final/{KEY}.npy", "png": f"final/{KEY}.png"}
     final = np.load(tmp_path / "job" / summary["textures"][KEY]["npy"])
     assert final.shape == (64, 64, 3) and final.dtype == np.float32

@@ -130,7 +130,8 @@ class InverseRenderingRun:
         started = time.perf_counter()
         state = trainer = None
         try:
-            prepared = prepare(self.spec, scene_file=self.scene_file)
+            prepared = prepare(self.spec, scene_file=self.scene_file,
+                               on_phase=lambda what: self.reporter.progress("preparing", {"what": what}))
             self.listed = prepared.textures
             recipe = choose_recipe(self.spec, prepared.problem, len(prepared.targets))
             self.method_name = recipe.method

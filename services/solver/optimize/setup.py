@@ -14,6 +14,7 @@ from __future__ import annotations
 import base64
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -193,11 +194,15 @@ def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None
     return Checked(scene, parameters, init_v, lower_v, upper_v, targets, target_values)
 
 
-def prepare(spec: JobSpec, *, scene_file: Path | None = None, method: str | None = None) -> Prepared:
+def prepare(spec: JobSpec, *, scene_file: Path | None = None, method: str | None = None,
+            on_phase: Callable[[str], None] = lambda what: None) -> Prepared:
     """Load and check everything a job needs, plan the effects to simulate (for ``method``,
     default the job's; ``prb``'s for an ``auto`` job), and render synthetic targets (unbiased:
-    unbounded paths with Russian roulette, unless the job fixes ``targets.synthetic.max_depth``)."""
+    unbounded paths with Russian roulette, unless the job fixes ``targets.synthetic.max_depth``).
+    ``on_phase`` hears what is being done, before each phase that may take long (a texture job's
+    scene load and targets; the effect probe)."""
     started = time.perf_counter()
+    on_phase("loading and checking the scene")
     c = check(spec, scene_file)
     loaded = time.perf_counter()
     problem = Problem(c.scene, c.parameters, delta_depth=spec.training.delta_depth)
@@ -206,6 +211,7 @@ def prepare(spec: JobSpec, *, scene_file: Path | None = None, method: str | None
     name = method or (Method.PRB if spec.method == AUTO else spec.method)
     facts = None
     if needs_effect_plan(name, spec.jacobian):
+        on_phase(f"probing the scene's effects for {c.parameters.n} scalars (forward-mode derivatives)")
         facts = probe_scene(c.scene, c.parameters, seed=derive_seed(spec.seed, "probe"), max_delta_depth=64)
         problem.apply_plan(plan_effects(facts, name, method_class(name).uses, spec.effects, spec.training.delta_depth))
     warnings: list[str] = []
@@ -217,6 +223,7 @@ def prepare(spec: JobSpec, *, scene_file: Path | None = None, method: str | None
     if c.target_values is not None:
         assert isinstance(spec.targets, SyntheticTargets)  # target values come from synthetic targets only
         synthetic = spec.targets.synthetic
+        on_phase(f"rendering {c.scene.sensor_count} synthetic target(s) at {synthetic.spp} spp")
         c.parameters.assign(c.target_values)
         for sensor in range(c.scene.sensor_count):
             targets[sensor] = render(problem, spp=synthetic.spp, sensor=sensor,
