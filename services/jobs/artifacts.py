@@ -184,6 +184,9 @@ class JobWriter:
             summary["textures"] = {key: {ext: self.files.texture_key(None, key)[len(self.files.prefix):] + f".{ext}"
                                          for ext in ("npy", "png")} for key in textures
                                    if self.files.store.exists(self.files.texture_key(None, key) + ".npy")}
+            for key, files in summary["textures"].items():   # a synthetic job's target texture
+                if self.files.store.exists(self.files.texture_key(None, f"{key}.target") + ".npy"):
+                    files["target"] = self.files.texture_key(None, f"{key}.target")[len(self.files.prefix):] + ".npy"
         if summary["final"] is not None and summary["target"] is not None and summary["final"]:
             summary["max_abs_error"] = float(np.max(np.abs(np.asarray(summary["final"]) - np.asarray(summary["target"]))))
         self.guard()

@@ -67,6 +67,7 @@ def test_prb_texel_gradient_matches_central_differences(mi):
 
 def test_texture_job_reports_summaries_and_files(mi, tmp_path):
     from services.jobs.local import run_local
+    from services.solver.scene.textured import true_albedo
 
     spec = _job(images_every=2)
     events: list[dict] = []
@@ -75,7 +76,10 @@ def test_texture_job_reports_summaries_and_files(mi, tmp_path):
     preparing = [e["what"] for e in events if e["type"] == "preparing"]   # said before the plan, not "starting"
     assert preparing == ["loading and checking the scene", "rendering 4 synthetic target(s) at 16 spp"]
     assert [e["type"] for e in events].index("plan") > [e["type"] for e in events].index("preparing")
-    assert summary["textures"][KEY] == {"npy": f"final/{KEY}.npy", "png": f"final/{KEY}.png"}
+    assert summary["textures"][KEY] == {"npy": f"final/{KEY}.npy", "png": f"final/{KEY}.png",
+                                        "target": f"final/{KEY}.target.npy"}
+    target = np.load(tmp_path / "job" / summary["textures"][KEY]["target"])
+    assert np.allclose(target, true_albedo())
     final = np.load(tmp_path / "job" / summary["textures"][KEY]["npy"])
     assert final.shape == (64, 64, 3) and final.dtype == np.float32
     assert not np.allclose(final, 0.5)                       # it moved from the initial grey

@@ -140,6 +140,8 @@ class InverseRenderingRun:
             state = self._initial_state(prepared, recipe, trainer)
             self.reporter.plan(self._plan(prepared, built, recipe))
             self.reporter.targets(prepared.targets)
+            if prepared.textures.targets(prepared.target_values):   # final/<key>.target, for comparison
+                self.reporter.textures(None, prepared.textures.targets(prepared.target_values))
             stream = ViewStream(sorted(prepared.targets), derive_seed(self.spec.seed, "batches"))
             for k in range(state.next_iteration, self.spec.iterations):
                 self._stop_if_asked()

@@ -75,6 +75,11 @@ class TextureReport:
         """Every texture's value ``(H, W, C)`` float32, by key."""
         return {t.key: t.of(flat) for t in self.textures}
 
+    def targets(self, target: np.ndarray | None) -> dict[str, np.ndarray]:
+        """Every texture's synthetic target ``(H, W, C)`` float32, by ``<key>.target`` (none
+        without synthetic targets)."""
+        return {} if target is None else {f"{t.key}.target": t.of(target) for t in self.textures}
+
     def gradients(self, dz_dp: np.ndarray) -> dict[str, np.ndarray]:
         """Every texture's gradient ``dz/dp`` as a texture ``(H, W, C)`` float32, by key."""
         return {f"{t.key}.dz_dp": t.of(dz_dp) for t in self.textures}

@@ -71,7 +71,12 @@ export function imagesPanel(jobId) {
   function textureFigures() {
     textureGrid.replaceChildren(...textureKeys.flatMap((key) => [key, `${key}.dz_dp`].map((name) =>
       h("figure.gradient-figure.missing", { dataset: { texture: name } },
-        picture("texture-image", name), h("figcaption", h("span.mono.ellipsis", { title: name }, name))))));
+        picture("texture-image", name), h("figcaption", h("span.mono.ellipsis", { title: name }, name))))
+      .concat([h("figure.gradient-figure.missing", { dataset: { target: key } },   // a synthetic job's target
+        picture("texture-target", `${key} target`), h("figcaption", h("span.mono.ellipsis", "target")))])));
+    textureGrid.querySelectorAll("figure[data-target]").forEach((figure) => {
+      setSource(figure.querySelector("img"), `${base}/final/${encodeURIComponent(figure.dataset.target)}.target.png`);
+    });
     textures.hidden = textureKeys.length === 0;
   }
 
@@ -98,7 +103,7 @@ export function imagesPanel(jobId) {
       figure.querySelector(".colorbar-slot").replaceChildren(colorBar(scales[p]));
       figure.querySelector("[data-role=npy]").href = authUrl(`${base}/iterations/${k}/gradients/${p}.npy`);
     });
-    textureGrid.querySelectorAll("figure").forEach((figure) => {
+    textureGrid.querySelectorAll("figure[data-texture]").forEach((figure) => {
       const name = encodeURIComponent(figure.dataset.texture);
       setSource(figure.querySelector("img"), `${base}/iterations/${k}/textures/${name}.png`, force);
     });
