@@ -252,3 +252,25 @@ def test_scene_description_gives_a_texture_its_shape_and_mean(mi):
     assert wall["shape"] == [64, 64, 3] and wall["size"] == 12288 and len(wall["value"]) == 3
     red = next(p for p in meta["scene"]["parameters"] if p["key"] == "red.reflectance.value")
     assert red["shape"] is None and len(red["value"]) == 3
+
+
+def test_an_interrupted_texture_job_resumes_to_the_same_texture(mi, tmp_path):
+    """The checkpoint holds every texel and Adam's moments for each: a run interrupted after a few
+    iterations and resumed ends with the uninterrupted run's texture (tolerance: 1e-6, float32
+    renders in one process)."""
+    from services.jobs.local import run_local
+
+    spec = _job(iterations=6, checkpoint_every=2, seed=3)
+    reference = run_local(spec, tmp_path / "whole")
+    calls = {"n": 0}
+
+    def stop() -> str | None:
+        calls["n"] += 1
+        return "interrupted" if calls["n"] > 3 else None   # polled once per iteration (no fields to train)
+
+    assert run_local(spec, tmp_path / "cut", should_stop=stop)["status"] == "interrupted"
+    assert not (tmp_path / "cut" / "final" / f"{KEY}.npy").exists()          # written at the end only
+    resumed = run_local(spec, tmp_path / "cut", resume=True)
+    assert resumed["status"] == reference["status"] == "succeeded"
+    np.testing.assert_allclose(np.load(tmp_path / "cut" / resumed["textures"][KEY]["npy"]),
+                               np.load(tmp_path / "whole" / reference["textures"][KEY]["npy"]), atol=1e-6)
