@@ -118,7 +118,8 @@ class JobPublic(BaseModel):
     parameters: dict[str, float] | None = Field(None, description="Latest parameter values, by scalar label.")
     target: dict[str, float] | None = Field(None, description="Target values (synthetic targets only).")
     metrics: dict[str, Any] | None = Field(None, description="Latest iteration: loss, residual norms, seconds per "
-                                                              "phase, sanitized sample counts.")
+                                                              "phase, sanitized sample counts, the texture "
+                                                              "summaries of a texture job.")
     plan: dict[str, Any] | None = Field(None, description="What the job simulates (fields, terms) and why.")
     error: str | None = Field(None, description="Why the job failed.")
     field: str | None = Field(None, description="The job-file field an error concerns.")
