@@ -112,13 +112,13 @@ def run_variant(name: str, iterations: int, every: int, targets: dict) -> dict:
     return row
 
 
-def run_million(iterations: int) -> dict:
+def run_million(iterations: int, size: int = 1000) -> dict:
     from schemas.job import JobSpec
     from services.jobs.local import run_local
     from services.solver.scene.textured import write_textured_box
 
     with tempfile.TemporaryDirectory() as tmp:
-        scene = write_textured_box(Path(tmp) / "scene", size=1000, views=1, film=128)
+        scene = write_textured_box(Path(tmp) / "scene", size=size, views=1, film=128)
         job = _job(iterations, 100000, {}, {"synthetic": {"values": {KEY: None}, "spp": 4}},
                    scene={"path": str(scene)})
         job.update(views_per_iteration=1, render={"spp": 1, "gradient_spp": 1})
@@ -145,6 +145,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--variants", default=",".join(VARIANTS))
     parser.add_argument("--million", action="store_true", help="also time a 1000 x 1000 texture")
     parser.add_argument("--million-iterations", type=int, default=2)
+    parser.add_argument("--million-size", type=int, default=1000, help="texels per side of the large texture")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "textures.json")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
@@ -155,7 +156,7 @@ def main(argv: list[str] | None = None) -> None:
         targets = render_targets(args.target_spp)
         log.info("targets rendered in %.1f s", time.perf_counter() - started)
         rows = [run_variant(name, args.iterations, args.every, targets) for name in names]
-    million = run_million(args.million_iterations) if args.million else None
+    million = run_million(args.million_iterations, args.million_size) if args.million else None
     args.out.write_text(json.dumps({"machine": machine(), "rows": rows, "million": million}, indent=1))
     lines = [[r["variant"], json.dumps(r["settings"]) if r["settings"] else "-", r["iterations"],
               f"{r['seconds_per_iteration']:.3f}",
@@ -164,7 +165,8 @@ def main(argv: list[str] | None = None) -> None:
     text = markdown_table(["variant", "textures settings", "iterations", "s / iteration", "first written "
                            "iteration >= 30 dB", "final PSNR (dB)", "seconds"], lines) if rows else ""
     if million is not None:
-        text += ("\n\n1000 x 1000 texture (" + f"{million['texels']} texels, {3 * million['texels']} scalars): "
+        side = million["shape"][0]
+        text += (f"\n\n{side} x {side} texture (" + f"{million['texels']} texels, {3 * million['texels']} scalars): "
                  f"{million['status']}; gradient + step seconds per iteration "
                  f"{', '.join(f'{s:.2f}' for s in million['gradient_and_step_seconds'])}; images (texture files) "
                  f"{', '.join(f'{s:.2f}' for s in million['images_seconds'])} s; preparation "
