@@ -28,7 +28,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from schemas.outcomes import Outcome
-from services.jobs.frames import array_bytes, read_frame, write_frame
+from services.jobs.frames import array_bytes, read_frame, started, write_frame
 from services.jobs.isolation import apply_limits
 
 log = logging.getLogger("services.jobs.child")
@@ -215,11 +215,12 @@ def main(argv: list[str]) -> int:
     if frame is None or frame[0] != "start":
         log.error("no start frame")
         return 2
+    start = started(frame[1], frame[2])   # an uploaded scene's files came as blobs
     if mode == "probe":  # no Mitsuba needed
-        probe(frame[1], out)
+        probe(start, out)
         return 0
     _mitsuba_log_to_stderr()
-    {"check": check, "describe": describe, "run": run}[mode](frame[1], out)
+    {"check": check, "describe": describe, "run": run}[mode](start, out)
     return 0
 
 

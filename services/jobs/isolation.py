@@ -260,7 +260,7 @@ def exchange(mode: str, start: dict, limits: ChildLimits, cwd: Path, what: str) 
     """Start a child, send it ``start``, and wait (at most ``limits.wall_seconds``) for its one
     answer frame: ``(kind, meta)``. A child that dies or times out raises :class:`ChildFailed`
     with a description for the user."""
-    from services.jobs.frames import FrameError, read_frame, write_frame
+    from services.jobs.frames import FrameError, read_frame, start_frame, write_frame
 
     child = Child(mode, limits, cwd, label=f"{mode}-{os.getpid()}")
     answer: list = []
@@ -277,7 +277,7 @@ def exchange(mode: str, start: dict, limits: ChildLimits, cwd: Path, what: str) 
     reader = threading.Thread(target=read, name=f"{mode}-answer", daemon=True)
     try:
         try:
-            write_frame(child.stdin, "start", start)
+            write_frame(child.stdin, "start", *start_frame(start))
             child.stdin.close()
         except BrokenPipeError:
             pass  # it died at once: described below

@@ -31,7 +31,7 @@ from schemas.job import JobSpec
 from schemas.outcomes import Outcome
 from schemas.records import IterationRecord, JobStatus
 from services.jobs.artifacts import BudgetExceeded, JobWriter
-from services.jobs.frames import FrameError, array_from, read_frame, write_frame
+from services.jobs.frames import FrameError, array_from, read_frame, start_frame, write_frame
 from services.jobs.isolation import Child, ChildFailed, ChildLimits, kernel_cache, sandboxed
 from services.jobs.preflight import upload_limits
 from services.jobs.state import Fenced, JobStates
@@ -99,9 +99,9 @@ class AttemptRunner:
         frames: queue.Queue = queue.Queue(maxsize=4)
         reader = threading.Thread(target=_pump, args=(child, frames), name=f"frames-{job_id}", daemon=True)
         try:
-            write_frame(child.stdin, "start", {"spec": spec.model_dump(mode="json"),
-                                                    "scene_file": str(scene_file) if scene_file else None,
-                                                    "resume_file": str(resume_file) if resume_file else None})
+            write_frame(child.stdin, "start", *start_frame({"spec": spec.model_dump(mode="json"),
+                                                             "scene_file": str(scene_file) if scene_file else None,
+                                                             "resume_file": str(resume_file) if resume_file else None}))
             child.stdin.close()
         except BrokenPipeError:
             pass

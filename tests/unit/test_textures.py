@@ -274,3 +274,20 @@ def test_an_interrupted_texture_job_resumes_to_the_same_texture(mi, tmp_path):
     assert resumed["status"] == reference["status"] == "succeeded"
     np.testing.assert_allclose(np.load(tmp_path / "cut" / resumed["textures"][KEY]["npy"]),
                                np.load(tmp_path / "whole" / reference["textures"][KEY]["npy"]), atol=1e-6)
+
+
+def test_an_uploaded_scene_s_files_travel_to_the_child_as_blobs():
+    """A frame header holds 16 MiB; an upload may hold 64 MiB of files (a large EXR texture)."""
+    import io
+
+    from services.jobs.frames import MAX_HEADER_BYTES, read_frame, start_frame, started, write_frame
+
+    big = "A" * (MAX_HEADER_BYTES + 1000)   # base64 of a file larger than a header
+    start = {"spec": {"scene": {"xml": "<scene/>", "files": {"albedo.exr": big, "b.obj": "QQ=="}}}, "scene_file": "x"}
+    stream = io.BytesIO()
+    write_frame(stream, "start", *start_frame(start))
+    stream.seek(0)
+    kind, meta, blobs = read_frame(stream)
+    assert kind == "start" and started(meta, blobs) == start
+    builtin = {"spec": {"scene": {"builtin": "cornell-box"}}}
+    assert start_frame(builtin) == (builtin, {})
