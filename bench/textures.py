@@ -136,6 +136,39 @@ def run_million(iterations: int, size: int = 1000) -> dict:
             "total_seconds": total, "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
+def run_sandboxed(iterations: int, size: int) -> dict:
+    """The large-texture job as the service runs it: the scene uploaded as XML with its EXR, run by
+    a worker's :class:`~services.jobs.runner.AttemptRunner` in its sandboxed child (default limits)."""
+    import base64
+    import threading
+
+    from schemas.job import JobSpec
+    from schemas.records import JobStatus
+    from services.jobs.runner import AttemptRunner
+    from services.jobs.service import JobService
+    from services.queue.local import LocalEventBus, LocalJobQueue
+    from services.settings import Limits
+    from services.solver.scene.textured import write_textured_box
+    from services.store.local import FolderStore
+
+    with tempfile.TemporaryDirectory() as tmp:
+        xml = write_textured_box(Path(tmp) / "scene", size=size, views=1, film=128)
+        files = {"albedo.exr": base64.b64encode((Path(tmp) / "scene" / "albedo.exr").read_bytes()).decode()}
+        job = _job(iterations, 100000, {}, {"synthetic": {"values": {KEY: None}, "spp": 4}},
+                   scene={"xml": xml.read_text(), "files": files})
+        job.update(views_per_iteration=1, render={"spp": 1, "gradient_spp": 1})
+        service = JobService(FolderStore(Path(tmp) / "store"), LocalJobQueue(), LocalEventBus())
+        record, _ = service.submit(JobSpec.model_validate(job))
+        service.states.transition(record.id, JobStatus.RUNNING, attempt="w#1")
+        started = time.perf_counter()
+        result = AttemptRunner(service.states, Limits(), Path(tmp) / "scratch").run(
+            record.id, "w#1", lost=threading.Event(), stop=lambda: None)
+        total = time.perf_counter() - started
+        error = service.states.get(record.id).error
+    return {"size": size, "status": str(result.outcome), "error": error, "total_seconds": total,
+            "upload_bytes": len(files["albedo.exr"])}
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m bench.textures", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -146,6 +179,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--million", action="store_true", help="also time a 1000 x 1000 texture")
     parser.add_argument("--million-iterations", type=int, default=2)
     parser.add_argument("--million-size", type=int, default=1000, help="texels per side of the large texture")
+    parser.add_argument("--sandboxed", action="store_true", help="also run the large texture job in a worker's "
+                                                                 "sandboxed child, as the service does")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "textures.json")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
@@ -157,7 +192,9 @@ def main(argv: list[str] | None = None) -> None:
         log.info("targets rendered in %.1f s", time.perf_counter() - started)
         rows = [run_variant(name, args.iterations, args.every, targets) for name in names]
     million = run_million(args.million_iterations, args.million_size) if args.million else None
-    args.out.write_text(json.dumps({"machine": machine(), "rows": rows, "million": million}, indent=1))
+    sandboxed = run_sandboxed(args.million_iterations, args.million_size) if args.sandboxed else None
+    args.out.write_text(json.dumps({"machine": machine(), "rows": rows, "million": million, "sandboxed": sandboxed},
+                                   indent=1))
     lines = [[r["variant"], json.dumps(r["settings"]) if r["settings"] else "-", r["iterations"],
               f"{r['seconds_per_iteration']:.3f}",
               f"{r['reached_30db']['iteration']} ({r['reached_30db']['seconds']:.0f} s)" if r["reached_30db"] else "never",
@@ -173,6 +210,11 @@ def main(argv: list[str] | None = None) -> None:
                  f"{', '.join(f'{k} {v:.1f} s' for k, v in million['prepared_seconds'].items())}; whole job "
                  f"{million['total_seconds']:.1f} s; peak resident memory of the process "
                  f"{million['peak_rss_mib']:.0f} MiB")
+    if sandboxed is not None:
+        text += (f"\n\nThe same job uploaded (XML and a {sandboxed['upload_bytes']}-byte base64 EXR) and run by a "
+                 f"worker in its sandboxed child: {sandboxed['status']}"
+                 + (f" ({sandboxed['error']})" if sandboxed["error"] else "")
+                 + f", {sandboxed['total_seconds']:.1f} s from the attempt's start to its end")
     write_markdown(args.out, "bench.textures", argv, text)
     log.info("\n%s", text)
 
