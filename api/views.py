@@ -12,7 +12,7 @@ from services.settings import Settings
 from services.store.job import JobFiles
 
 METRICS = ("loss", "residual_radiance", "residual_differential", "seconds", "sanitized", "parameter_error", "views",
-           "optimizer", "learning_rate")
+           "optimizer", "learning_rate", "textures")
 
 
 def job_public(record: JobRecord, files: JobFiles, settings: Settings, *, mint_token: bool = True) -> JobPublic:

@@ -28,6 +28,7 @@ def gradient_command(job_path: str, method: str, spp: int | None, train_steps: i
     Writes OUT/gradients.npy (float32, P x H x W x 3), OUT/gradient-<i>.png (diverging colour map,
     red = positive) and OUT/summary.json with the method, the seconds spent and dz/dp.
     """
+    from schemas.errors import InvalidJob
     from services.jobs.preflight import upload_limits
     from services.settings import Limits
     from services.solver.optimize.evaluate import evaluate_gradient
@@ -41,7 +42,10 @@ def gradient_command(job_path: str, method: str, spp: int | None, train_steps: i
         scene_file = stage_scene(spec.scene, out / "scene", upload_limits(Limits()), Path(job_path).resolve().parent)
     except ValueError as exc:
         raise click.ClickException(str(exc)) from None
-    result = evaluate_gradient(spec, method, spp=spp, train_steps=train_steps, scene_file=scene_file)
+    try:
+        result = evaluate_gradient(spec, method, spp=spp, train_steps=train_steps, scene_file=scene_file)
+    except InvalidJob as exc:
+        raise click.ClickException(f"{exc.field}: {exc.message}") from None
     summary = result.summary
     for sensor, images in sorted(result.images.items()):
         folder = out if sensor == 0 else out / f"sensor-{sensor}"

@@ -31,6 +31,8 @@ def _progress_hooks(total: int):
         if kind == "iteration":
             progress.update(task, completed=event["iteration"] + 1, description="optimizing",
                             loss=f"{event['loss']:.4g}")
+        elif kind == "preparing":
+            progress.update(task, description=event["what"])
         elif kind == "resumed":
             progress.update(task, completed=event["iteration"], description="resumed")
         elif kind == "warmup":
@@ -53,6 +55,8 @@ def _final_table(summary: dict):
     targets = summary.get("target") or [math.nan] * len(summary["scalars"] or [])
     for label, init, final, target in zip(summary["scalars"] or [], summary["init"], summary["final"], targets):
         table.add_row(label, f"{init:.4f}", f"{final:.4f}", "-" if target is None or math.isnan(target) else f"{target:.4f}")
+    for key, files in (summary.get("textures") or {}).items():
+        table.add_row(f"{key} (texture)", "", files["npy"], "")
     return table
 
 

@@ -56,14 +56,19 @@ Scalars = float | list[float]
 
 
 class ParameterSpec(_Strict):
-    """One scene parameter to recover (a ``mi.traverse`` key)."""
+    """One scene parameter to recover (a ``mi.traverse`` key). A bitmap texture's ``data`` (e.g.
+    ``wall.reflectance.data``) is a texture parameter: all its texels are recovered (prb only)."""
 
-    key: str = Field(description="Mitsuba traverse key, e.g. 'red.reflectance.value'.", min_length=1, max_length=256)
+    key: str = Field(description="Mitsuba traverse key, e.g. 'red.reflectance.value', or a bitmap texture's "
+                                 "data, e.g. 'wall.reflectance.data' (a texture parameter).",
+                     min_length=1, max_length=256)
     init: Scalars | None = Field(None, description="Initial value (a number, or one per component; a single "
-                                                   "number is broadcast). Default: the scene's own value.")
+                                                   "number is broadcast; for a texture also one per channel, "
+                                                   "repeated at every texel). Default: the scene's own value "
+                                                   "(for a texture: the scene file's texture).")
     bounds: tuple[float, float] | None = Field(
-        None, description="[lower, upper] projection bounds after each step. Default: [0, 1] for BSDF "
-                          "parameters, [0, +inf) for emitters.")
+        None, description="[lower, upper] projection bounds after each step (per texel for a texture). Default: "
+                          "[0, 1] for BSDF parameters, [0, +inf) for emitters.")
 
     @field_validator("bounds")
     @classmethod
@@ -78,7 +83,9 @@ class ParameterSpec(_Strict):
 class SyntheticTarget(_Strict):
     """Render the target from the same scene with known parameter values."""
 
-    values: dict[str, Scalars] = Field(description="Parameter values of the target, by key.")
+    values: dict[str, Scalars | None] = Field(
+        description="Parameter values of the target, by key (as a parameter's init); null: the scene's own value "
+                    "(for a texture, the scene file's texture: the usual synthetic texture target).")
     spp: int = Field(256, ge=1, le=65536, description="Samples per pixel of the target rendering.")
     max_depth: int | None = Field(
         None, ge=1, le=1024, description="Path depth of the target rendering. Default: unbounded, paths ended "
@@ -176,6 +183,27 @@ class EffectOverrides(_Strict):
                                                    "(an RGB albedo component changes one channel).")
 
 
+# --------------------------------------------------------------------------------- textures
+
+class TextureSettings(_Strict):
+    """How texture parameters are optimized (ignored by jobs without one;
+    ``services.solver.optimize.regularize``). Each setting's effect is measured in
+    ``bench/results/textures.md``."""
+
+    smoothness: Literal["none", "laplacian", "tv"] = Field(
+        "none", description="A smoothness penalty on differences between neighbouring texels, added to the step's "
+                            "gradient (the reported loss stays the image loss): 'laplacian' (squared differences) "
+                            "or 'tv' (total variation, keeps edges).")
+    smoothness_weight: float = Field(1.0, ge=0.0, le=1e6, description="Weight of the smoothness penalty, which is "
+                                                                      "averaged over neighbour pairs (independent "
+                                                                      "of the texture's size).")
+    coarse_to_fine: int = Field(0, ge=0, le=8, description="Levels of a coarse-to-fine schedule: the first half of "
+                                                           "the iterations is split into this many stages that "
+                                                           "optimize the texture at 1/2^L, ..., 1/2 of its "
+                                                           "resolution (the gradient averaged over blocks); 0: "
+                                                           "full resolution throughout.")
+
+
 # -------------------------------------------------------------------------------------- job
 
 #: The optimizers that step from a Jacobian (``services.solver.optimize.optimizers``).
@@ -260,6 +288,8 @@ class JobSpec(_Strict):
     render: RenderSpec = Field(default_factory=RenderSpec, description="Rendering settings.")
     training: TrainingConfig = Field(default_factory=TrainingConfig, description="Training of L_phi and dL_theta.")
     effects: EffectOverrides = Field(default_factory=EffectOverrides, description="Overrides of the effect planner.")
+    textures: TextureSettings = Field(default_factory=TextureSettings,
+                                      description="Regularization of texture parameters (a bitmap's data).")
     checkpoint_every: int = Field(10, ge=1, le=100000, description="Write a checkpoint every K iterations.")
     images_every: int | None = Field(
         None, ge=1, le=100000, description="Write the renders of every view and the gradient images every K "

@@ -71,9 +71,10 @@ class IterationRecord(BaseModel):
 
     iteration: int = Field(description="0-based iteration index.")
     loss: float | None = Field(description="Image loss z(y), summed over sensors.")
-    parameters: list[float] = Field(description="Parameters at which loss and gradient were evaluated.")
+    parameters: list[float] = Field(description="Parameters at which loss and gradient were evaluated (the scalars "
+                                                "plan.json lists: every parameter but textures).")
     updated_parameters: list[float] = Field(description="Parameters after the optimizer's step and projection.")
-    dz_dp: list[float] = Field(description="Gradient of the loss w.r.t. every scalar (Eq. 10).")
+    dz_dp: list[float] = Field(description="Gradient of the loss w.r.t. every listed scalar (Eq. 10).")
     learning_rate: float = Field(description="Learning rate of this step (the job's schedule).")
     views: list[int] = Field(default_factory=list, description="The target views (sensor indices) of this "
                                                                "iteration's batch.")
@@ -93,6 +94,11 @@ class IterationRecord(BaseModel):
                                                                    "dL_theta.")
     parameter_error: float | None = Field(None, description="max |p - target| (synthetic targets only).")
     images: bool = Field(False, description="Whether renders and gradient images were written this iteration.")
+    textures: dict[str, dict[str, Any]] | None = Field(
+        None, description="Per texture parameter, by key (texture jobs only; their texels are not in parameters, "
+                          "updated_parameters or dz_dp): shape, mean per channel, min, max of the parameters the "
+                          "step was taken at, gradient_rms of dz/dp and, for synthetic targets, rmse and psnr (dB) "
+                          "against the target texture.")
     preview_scales: list[float] | None = Field(None, description="Value of full red in each gradient preview.")
 
 
@@ -112,7 +118,8 @@ class JobPublic(BaseModel):
     parameters: dict[str, float] | None = Field(None, description="Latest parameter values, by scalar label.")
     target: dict[str, float] | None = Field(None, description="Target values (synthetic targets only).")
     metrics: dict[str, Any] | None = Field(None, description="Latest iteration: loss, residual norms, seconds per "
-                                                              "phase, sanitized sample counts.")
+                                                              "phase, sanitized sample counts, the texture "
+                                                              "summaries of a texture job.")
     plan: dict[str, Any] | None = Field(None, description="What the job simulates (fields, terms) and why.")
     error: str | None = Field(None, description="Why the job failed.")
     field: str | None = Field(None, description="The job-file field an error concerns.")

@@ -14,4 +14,6 @@ BUILTIN_SCENES: dict[str, str] = {
     "room-closed-8": "Closed room (walls.reflectance.value) with a sphere in sight (ball.reflectance.value), seen "
                      "by 8 cameras of 128x128: multi-view, long light paths.",
     "room-open-8": "The same room without its front wall (light escapes): multi-view, shorter paths.",
+    "textured-box": "Cornell box without its blocks whose back wall has a 64x64 albedo texture "
+                    "(wall.reflectance.data, 12,288 scalars), seen by 4 cameras of 128x128: texture recovery.",
 }

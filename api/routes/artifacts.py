@@ -146,6 +146,39 @@ def gradients_stack(job_id: str, k: Iteration, runtime: RuntimeDep, caller: Read
     return send(files, key, NPY, f"gradient data of iteration {k}", filename=f"{job_id}-{k}-gradients.npy")
 
 
+#: ``<key>.npy|png`` or ``<key>.dz_dp.npy|png`` of a texture parameter (Mitsuba keys: letters, digits, ``_.-``).
+_TEXTURE = re.compile(r"^([A-Za-z0-9_][A-Za-z0-9_.\-]{0,255})\.(png|npy)$")
+TextureName = Annotated[str, PathParam(description="'<key>.npy' (float32 H x W x C) or '<key>.png' (preview) of a "
+                                                   "texture parameter, e.g. 'wall.reflectance.data.npy'; per "
+                                                   "iteration also '<key>.dz_dp.npy|png', its gradient.")]
+
+
+def _texture(files: JobFiles, k: int | None, name: str):
+    match = _TEXTURE.match(name)
+    if match is None or ".." in name:
+        raise ProblemError(422, "Invalid request", "name must be '<texture key>.npy' or '<texture key>.png'",
+                           slug="invalid-request", errors=[("name", "expected <key>.npy or <key>.png")])
+    key = files.texture_key(k, match.group(1)) + "." + match.group(2)
+    what = f"texture {match.group(1)}" + ("" if k is None else f" of iteration {k}")
+    if not files.store.exists(key):
+        raise _missing(what)
+    return send(files, key, PNG if match.group(2) == "png" else NPY, what,
+                filename=None if match.group(2) == "png" else name)
+
+
+@router.get("/final/{name}", summary="A recovered texture", responses={200: {"content": {PNG: {}, NPY: {}}}})
+def final_texture(job_id: str, runtime: RuntimeDep, caller: ReaderDep, name: TextureName):
+    """A texture parameter's recovered value (written at the end; summary.json names the files)."""
+    return _texture(files_or_404(runtime, job_id, caller), None, name)
+
+
+@router.get("/iterations/{k}/textures/{name}", summary="A texture at an iteration",
+            responses={200: {"content": {PNG: {}, NPY: {}}}})
+def iteration_texture(job_id: str, k: Iteration, runtime: RuntimeDep, caller: ReaderDep, name: TextureName):
+    """A texture parameter at iteration ``k`` and its gradient (written with the iteration's images)."""
+    return _texture(files_or_404(runtime, job_id, caller), k, name)
+
+
 @router.get("/targets/{sensor}.png", summary="Target image", responses={200: {"content": {PNG: {}}}})
 def target_png(job_id: str, runtime: RuntimeDep, caller: ReaderDep, sensor: Annotated[int, PathParam(ge=0, le=64)]):
     files = files_or_404(runtime, job_id, caller)

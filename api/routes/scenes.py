@@ -30,7 +30,9 @@ class ParameterPublic(BaseModel):
     size: int = Field(description="Number of scalars (an RGB value counts 3).")
     owner: str = Field(description="'bsdf' or 'emitter'.")
     owner_type: str = Field(description="Mitsuba plugin class, e.g. SmoothDiffuse, AreaLight.")
-    value: list[float] = Field(description="Current value in the scene.")
+    value: list[float] = Field(description="Current value in the scene (a texture: its mean per channel).")
+    shape: list[int] | None = Field(None, description="[H, W, C] of a texture parameter (a bitmap's data, "
+                                                      "recovered texel by texel); null for a value.")
 
 
 class SceneParameters(BaseModel):

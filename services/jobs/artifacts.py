@@ -142,6 +142,19 @@ class JobWriter:
             scales.append(scale)
         return scales
 
+    def textures(self, iteration: int | None, images: dict[str, np.ndarray]) -> None:
+        """Each texture as ``<name>.npy`` (``(H, W, C)`` float32) and a PNG preview (a value in sRGB,
+        a ``.dz_dp`` gradient through the diverging map): under ``iterations/<k>/textures/``, or
+        ``final/`` at the end (``iteration`` None)."""
+        self.guard()
+        for name, image in sorted(images.items()):
+            key = self.files.texture_key(iteration, name)
+            image = np.asarray(image, np.float32)
+            self._put(key + ".npy", npy_bytes(image), durable=iteration is None)
+            rgb = np.repeat(image, 3, axis=-1) if image.shape[-1] == 1 else image
+            png = gradient_png(rgb)[0] if name.endswith(".dz_dp") else srgb_png(rgb)
+            self._put(key + ".png", png, durable=iteration is None)
+
     def checkpoint(self, state: bytes, next_iteration: int) -> None:
         self.guard()
         self.files.store.flush()   # every record a resume from this checkpoint keeps is durable first
@@ -170,7 +183,15 @@ class JobWriter:
                    "seconds": data["seconds"], "scalars": plan.get("scalars"), "init": plan.get("init"),
                    "final": data.get("parameters"), "target": plan.get("target_values"),
                    "error": data.get("error"), "field": data.get("field")}
-        if summary["final"] is not None and summary["target"] is not None:
+        textures = [t["key"] for t in plan.get("textures") or []]
+        if textures:   # the recovered textures' files (written at the end of a run that got there)
+            summary["textures"] = {key: {ext: self.files.texture_key(None, key)[len(self.files.prefix):] + f".{ext}"
+                                         for ext in ("npy", "png")} for key in textures
+                                   if self.files.store.exists(self.files.texture_key(None, key) + ".npy")}
+            for key, files in summary["textures"].items():   # a synthetic job's target texture
+                if self.files.store.exists(self.files.texture_key(None, f"{key}.target") + ".npy"):
+                    files["target"] = self.files.texture_key(None, f"{key}.target")[len(self.files.prefix):] + ".npy"
+        if summary["final"] is not None and summary["target"] is not None and summary["final"]:
             summary["max_abs_error"] = float(np.max(np.abs(np.asarray(summary["final"]) - np.asarray(summary["target"]))))
         self.guard()
         self._put(self.files.key(JobFiles.SUMMARY), _json(summary))

@@ -31,7 +31,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from schemas.outcomes import Outcome
-from services.jobs.frames import array_bytes, read_frame, write_frame
+from services.jobs.frames import array_bytes, read_frame, started, write_frame
 from services.jobs.isolation import apply_limits
 
 log = logging.getLogger("services.jobs.child")
@@ -56,6 +56,10 @@ class PipeReporter:
         blobs = {f"render-{s}": array_bytes(a) for s, a in (renders or {}).items()}
         blobs |= {f"gradients-{s}": array_bytes(a) for s, a in (gradients or {}).items()}
         write_frame(self.stream, "iteration", {"record": record.model_dump(mode="json")}, blobs)
+
+    def textures(self, iteration, images):
+        write_frame(self.stream, "textures", {"iteration": iteration, "names": sorted(images)},
+                    {f"texture-{i}": array_bytes(images[name]) for i, name in enumerate(sorted(images))})
 
     def checkpoint(self, state, next_iteration):
         write_frame(self.stream, "checkpoint", {"next_iteration": next_iteration}, {"state": state})
@@ -99,7 +103,7 @@ def check(start: dict, out) -> None:
     spec = JobSpec.model_validate(start["spec"])
     scene_file = Path(start["scene_file"]) if start.get("scene_file") else None
     try:
-        checked = check_job(spec, scene_file, max_scalars=start.get("max_scalars"))
+        checked = check_job(spec, scene_file, max_scalars=start.get("max_scalars"), max_texels=start.get("max_texels"))
     except InvalidJob as exc:
         write_frame(out, "invalid", {"field": exc.field, "message": exc.message})
         return
@@ -122,8 +126,8 @@ def describe(start: dict, out) -> None:
     except (RuntimeError, OSError, ValueError, InvalidJob) as exc:
         write_frame(out, "invalid", {"field": "scene.xml", "message": f"Mitsuba could not load the scene: {exc}"})
         return
-    parameters = [{"key": p.key, "size": p.size, "owner": p.owner, "owner_type": p.owner_type, "value": list(p.value)}
-                  for p in differentiable_parameters(scene.params)]
+    parameters = [{"key": p.key, "size": p.size, "owner": p.owner, "owner_type": p.owner_type, "value": list(p.value),
+                   "shape": None if p.shape is None else list(p.shape)} for p in differentiable_parameters(scene.params)]
     sensors = [list(scene.resolution(i)) for i in range(scene.sensor_count)]
     write_frame(out, "described", {"scene": {"parameters": parameters, "sensors": sensors}})
 
@@ -242,11 +246,12 @@ def main(argv: list[str]) -> int:
     if frame is None or frame[0] != "start":
         log.error("no start frame")
         return 2
+    start = started(frame[1], frame[2])   # an uploaded scene's files came as blobs
     if mode == "probe":  # no Mitsuba needed
-        probe(frame[1], out)
+        probe(start, out)
         return 0
     _mitsuba_log_to_stderr()
-    {"check": check, "describe": describe, "view": view, "run": run}[mode](frame[1], out)
+    {"check": check, "describe": describe, "view": view, "run": run}[mode](start, out)
     return 0
 
 

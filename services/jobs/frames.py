@@ -83,3 +83,25 @@ def array_from(data: bytes, *, dtype=np.float32, ndim: int | None = None) -> np.
     if array.dtype.kind not in "fiu" or (ndim is not None and array.ndim != ndim):
         raise FrameError(f"unexpected array {array.dtype} with shape {array.shape}")
     return array.astype(dtype, copy=False)
+
+
+def start_frame(start: dict) -> tuple[dict, dict[str, bytes]]:
+    """The ``start`` frame of a child: an uploaded scene's files (base64 in the job's spec, up to
+    the upload limit, more than a header may hold) travel as blobs; :func:`started` puts them back."""
+    spec = start.get("spec")
+    files = spec.get("scene", {}).get("files") if isinstance(spec, dict) else None
+    if not files or not isinstance(spec, dict):
+        return start, {}
+    names = sorted(files)
+    meta = dict(start, spec=dict(spec, scene=dict(spec["scene"], files={})), scene_files=names)
+    return meta, {f"file-{i}": files[name].encode("ascii") for i, name in enumerate(names)}
+
+
+def started(meta: dict, blobs: dict[str, bytes]) -> dict:
+    """The ``start`` dict :func:`start_frame` split: the spec's scene files restored."""
+    names = meta.get("scene_files")
+    if not names:
+        return meta
+    files = {str(name): blobs[f"file-{i}"].decode("ascii") for i, name in enumerate(names)}
+    spec = dict(meta["spec"], scene=dict(meta["spec"]["scene"], files=files))
+    return {k: v for k, v in dict(meta, spec=spec).items() if k != "scene_files"}

@@ -267,7 +267,7 @@ def exchange(mode: str, start: dict, limits: ChildLimits, cwd: Path, what: str) 
 def exchange_frame(mode: str, start: dict, limits: ChildLimits, cwd: Path,
                    what: str) -> tuple[str, dict, dict[str, bytes]]:
     """:func:`exchange`, with the answer's blobs."""
-    from services.jobs.frames import FrameError, read_frame, write_frame
+    from services.jobs.frames import FrameError, read_frame, start_frame, write_frame
 
     child = Child(mode, limits, cwd, label=f"{mode}-{os.getpid()}")
     answer: list = []
@@ -284,7 +284,7 @@ def exchange_frame(mode: str, start: dict, limits: ChildLimits, cwd: Path,
     reader = threading.Thread(target=read, name=f"{mode}-answer", daemon=True)
     try:
         try:
-            write_frame(child.stdin, "start", start)
+            write_frame(child.stdin, "start", *start_frame(start))
             child.stdin.close()
         except BrokenPipeError:
             pass  # it died at once: described below

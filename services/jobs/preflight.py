@@ -84,7 +84,7 @@ def preflight(spec: JobSpec, limits: Limits) -> dict:
     with tempfile.TemporaryDirectory(prefix="ndrf-preflight-", dir=checks_folder()) as tmp:
         scene_file = stage_scene(spec.scene, Path(tmp) / "scene", upload_limits(limits))
         start = {"spec": spec.model_dump(mode="json"), "scene_file": str(scene_file) if scene_file else None,
-                 "max_scalars": limits.parameters}
+                 "max_scalars": limits.parameters, "max_texels": limits.texels}
         report = _in_child("check", start, spec.scene, limits, Path(tmp))["report"]
     check_scene_report(spec, report, limits)
     return report

@@ -31,7 +31,7 @@ from schemas.job import JobSpec
 from schemas.outcomes import Outcome
 from schemas.records import IterationRecord, JobStatus
 from services.jobs.artifacts import BudgetExceeded, JobWriter
-from services.jobs.frames import FrameError, array_from, read_frame, write_frame
+from services.jobs.frames import FrameError, array_from, read_frame, start_frame, write_frame
 from services.jobs.isolation import Child, ChildFailed, ChildLimits, kernel_cache, sandboxed
 from services.jobs.preflight import upload_limits
 from services.jobs.state import Fenced, JobStates
@@ -108,10 +108,10 @@ class AttemptRunner:
         frames: queue.Queue = queue.Queue(maxsize=4)
         reader = threading.Thread(target=_pump, args=(child, frames), name=f"frames-{job_id}", daemon=True)
         try:
-            write_frame(child.stdin, "start", {"spec": spec.model_dump(mode="json"),
-                                                    "scene_file": str(scene_file) if scene_file else None,
-                                                    "resume_file": str(resume_file) if resume_file else None,
-                                                    "warm_file": str(warm_file) if warm_file else None})
+            write_frame(child.stdin, "start", *start_frame({"spec": spec.model_dump(mode="json"),
+                                                             "scene_file": str(scene_file) if scene_file else None,
+                                                             "resume_file": str(resume_file) if resume_file else None,
+                                                             "warm_file": str(warm_file) if warm_file else None}))
             child.stdin.close()
         except BrokenPipeError:
             pass
@@ -203,6 +203,10 @@ class AttemptRunner:
             gradients = {int(k.split("-", 1)[1]): array_from(b, ndim=4) for k, b in blobs.items()
                          if k.startswith("gradients-")}
             writer.iteration(IterationRecord.model_validate(meta["record"]), renders or None, gradients or None)
+        elif kind == "textures":
+            names = [str(name) for name in meta["names"]]
+            iteration = None if meta["iteration"] is None else int(meta["iteration"])
+            writer.textures(iteration, {name: array_from(blobs[f"texture-{i}"], ndim=3) for i, name in enumerate(names)})
         elif kind == "checkpoint":
             writer.checkpoint(blobs["state"], int(meta["next_iteration"]))
         else:

@@ -10,6 +10,9 @@
       iterations/<k>/render.png     candidate of sensor 0 (render-<s>.png for the others)
       iterations/<k>/gradients.npy  dI/dp of sensor 0, float32 (P, H, W, 3), every images_every iterations
       iterations/<k>/gradient-<p>.png
+      iterations/<k>/textures/<key>.npy|.png  a texture parameter (H, W, C) and <key>.dz_dp its gradient, with
+                                    the images (texture jobs write no gradient-<p>.png)
+      final/<key>.npy|.png          a recovered texture parameter, float32 (H, W, C), at the end
       checkpoints/latest.pt         everything needed to continue (services.solver.optimize.checkpoint)
       checkpoints/latest.json       {"next_iteration": k} of that checkpoint
       summary.json                  final status, parameters, iterations, seconds
@@ -45,6 +48,10 @@ class JobFiles:
 
     def iteration_key(self, k: int, name: str = "record.json") -> str:
         return f"{self.prefix}iterations/{k:06d}/{name}"
+
+    def texture_key(self, k: int | None, name: str) -> str:
+        """Key (without extension) of texture ``name`` at iteration ``k``, or recovered (``k`` None)."""
+        return f"{self.prefix}final/{name}" if k is None else f"{self.prefix}iterations/{k:06d}/textures/{name}"
 
     def target_key(self, sensor: int, ext: str) -> str:
         return f"{self.prefix}targets/target-{sensor}.{ext}"

@@ -11,7 +11,10 @@ absolute names as they are, so a scene could read any host file. The rules that 
   top of the folder, where Mitsuba and this check look them up alike.
 * ``<path>`` adds host folders to the resolver: refused.
 * ``<default>``/``$name`` substitution rewrites attributes after this check: no ``$`` in names,
-  types or file names, no ``/`` in a value that uses or defines a substitution.
+  types or file names, no ``/`` in a value that uses or defines a substitution. The main
+  document's own top-level defaults are first substituted into its file names
+  (:func:`resolve_scene_defaults`, :mod:`services.uploads.defaults`), and the resolved document
+  is what is checked and staged.
 * ``type`` loads ``plugins/<type>.so`` through the same resolver (uploaded code would run): types are
   plain names, and the top-level ``plugins/`` and ``data/`` (Mitsuba's built-in data) are reserved.
 * Attribute values that look like absolute host paths or contain ``../`` are refused anywhere.
@@ -54,6 +57,7 @@ import defusedxml
 import defusedxml.ElementTree as safe_et
 
 from schemas.errors import InvalidJob
+from services.uploads.defaults import resolve_file_defaults
 from services.uploads.images import check_image
 from services.uploads.meshes import MESH_TYPES, MeshSummary, check_mesh
 
@@ -109,6 +113,16 @@ class _Document:
         return _field(self.name)
 
 
+def resolve_scene_defaults(xml: str, limits: UploadLimits = UploadLimits()) -> str:
+    """The main document with its own ``<default>`` values substituted into its file names
+    (:mod:`services.uploads.defaults`): what is checked and staged. Call before
+    :func:`check_scene_upload`."""
+    size = len(xml.encode("utf-8", "surrogatepass"))
+    if size > limits.max_xml_bytes:
+        raise InvalidJob("scene.xml", f"has {size} bytes; at most {limits.max_xml_bytes} are allowed")
+    return resolve_file_defaults(_parse(xml, "scene.xml", limits)[0], xml, "scene.xml")
+
+
 def check_scene_upload(xml: str, files: Mapping[str, str],
                        limits: UploadLimits = UploadLimits()) -> dict[str, bytes]:
     """Validate and decode. Returns {normalized relative path: decoded bytes}.
@@ -155,7 +169,10 @@ def pack_scene(xml_path: str | Path) -> tuple[str, dict[str, str]]:
         return folder / rel
 
     def visit(where: Path, text: str) -> Iterator[str]:
-        includes, others = _references(_parse(text, str(where))[0])
+        root = _parse(text, str(where))[0]
+        if where == main:   # the scene's own defaults in its file names, as the service resolves them
+            root = _parse(resolve_file_defaults(root, text, str(where)), str(where))[0]
+        includes, others = _references(root)
         for name in others:
             add(where, "file path", name)
         return iter(includes)

@@ -11,7 +11,7 @@ import shutil
 from pathlib import Path
 
 from schemas.job import BuiltinScene, PathScene, SceneSpec, XmlScene
-from services.uploads.scene import MAIN_XML_NAME, UploadLimits, check_scene_upload
+from services.uploads.scene import MAIN_XML_NAME, UploadLimits, check_scene_upload, resolve_scene_defaults
 
 
 def write_scene_files(folder: Path, xml: str, files: dict[str, bytes]) -> Path:
@@ -40,8 +40,9 @@ def stage_scene(scene: SceneSpec, folder: Path, limits: UploadLimits, base_dir: 
     if isinstance(scene, BuiltinScene):
         return None
     if isinstance(scene, XmlScene):
-        files = check_scene_upload(scene.xml, scene.files, limits)
-        return write_scene_files(folder, scene.xml, files)
+        xml = resolve_scene_defaults(scene.xml, limits)   # checked and staged as resolved
+        files = check_scene_upload(xml, scene.files, limits)
+        return write_scene_files(folder, xml, files)
     if isinstance(scene, PathScene):
         path = Path(scene.path)
         return path if path.is_absolute() or base_dir is None else base_dir / path

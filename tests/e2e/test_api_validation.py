@@ -17,7 +17,10 @@ from tests.support.scenes import UPLOAD_XML as SCENE
 from tests.support.service import small_job, start_api
 
 CAPS = {"NDRF_MAX_UPLOAD_BYTES": "400000", "NDRF_MAX_RESOLUTION": "128", "NDRF_MAX_SPP": "256",
-        "NDRF_MAX_ITERATIONS": "100", "NDRF_MAX_PARAMETERS": "6", "NDRF_MAX_MESH_BYTES": "20000"}
+        "NDRF_MAX_ITERATIONS": "100", "NDRF_MAX_PARAMETERS": "6", "NDRF_MAX_MESH_BYTES": "20000",
+        "NDRF_MAX_TEXELS": "1000"}
+TEXTURE = {"scene": {"builtin": "textured-box"}, "parameters": [{"key": "wall.reflectance.data", "init": 0.5}],
+           "targets": {"synthetic": {"values": {"wall.reflectance.data": None}}}}
 
 
 def b64(data: bytes | str) -> str:
@@ -108,6 +111,7 @@ def test_oversized_body_is_413_before_it_is_read(api):
       "targets": {"synthetic": {"values": {"red.reflectance.value": 0.5, "green.reflectance.value": 0.5,
                                            "white.reflectance.value": 0.5}}}}, "parameters", "9 scalars"),
     ({"scene": {"path": "/etc/passwd"}}, "scene.path", "host paths"),
+    (TEXTURE, "parameters", "4096 texels, more than the limit of 1000 (NDRF_MAX_TEXELS)"),
 ])
 def test_jobs_over_the_caps_are_refused(api, change, field, message):
     expect_problem(api, {**small_job(), **change}, 422, field, message)

@@ -20,7 +20,8 @@ def _spec(**extra) -> JobSpec:
 
 
 def _problem(sizes):
-    return SimpleNamespace(layout=DerivativeLayout.by_component(sizes))
+    return SimpleNamespace(layout=DerivativeLayout.by_component(sizes),
+                           parameters=SimpleNamespace(has_textures=False, n=sum(sizes)))
 
 
 def test_the_default_job_gets_prb_levenberg_marquardt_and_one_view_with_reasons():

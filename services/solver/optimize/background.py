@@ -110,6 +110,9 @@ class BackgroundReporter:
                   gradients: dict[int, np.ndarray] | None) -> None:
         self._submit("iteration", record, renders, gradients)
 
+    def textures(self, iteration: int | None, images: dict[str, np.ndarray]) -> None:
+        self._submit("textures", iteration, images)
+
     def checkpoint(self, state: bytes, next_iteration: int) -> None:
         self._submit("checkpoint", state, next_iteration)
         self.flush()

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from schemas.errors import InvalidJob
 from schemas.job import JobSpec
 from services.solver.estimators.losses import image_loss
 from services.solver.estimators.methods import contract, make_method
@@ -33,6 +34,10 @@ def evaluate_gradient(spec: JobSpec, method_name: str, *, spp: int | None = None
                       scene_file: Path | None = None) -> GradientEvaluation:
     prepared = prepare(spec, scene_file=scene_file, method=method_name)
     problem = prepared.problem
+    if problem.parameters.has_textures:
+        raise InvalidJob("parameters", f"the gradient images are one per scalar, {problem.parameters.n} for a texture "
+                                       f"job: run the job instead (ndrf run); its images iterations write "
+                                       f"textures/<key>.dz_dp.npy, the gradient as a texture")
     method = make_method(method_name, problem.plan, prepared.depth)
     spp = spp or spec.render.gradient_spp
     steps = spec.training.warmup_steps if train_steps is None else train_steps

@@ -52,8 +52,11 @@ class ImageSchedule:
 def render_views(prepared, method: GradientMethod, fields: Fields, candidates: dict[int, np.ndarray],
                  k: int, spp: int, gradient_spp: int) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
     """The candidate ``(H, W, 3)`` and the gradient images ``(P, H, W, 3)`` of every view at the
-    current parameters (``candidates`` holds those the iteration rendered already)."""
+    current parameters (``candidates`` holds those the iteration rendered already). A job with a
+    texture parameter writes no gradient images (P of them would be one per texel): its gradient
+    is written as a texture instead (:mod:`.textures`); ``gradients`` is then empty."""
     spec, problem = prepared.spec, prepared.problem
+    per_scalar = not problem.parameters.has_textures
     renders, gradients = {}, {}
     for sensor in sorted(prepared.targets):
         seed = derive_seed(spec.seed, "images", k, sensor)
@@ -64,6 +67,7 @@ def render_views(prepared, method: GradientMethod, fields: Fields, candidates: d
         else:
             image = render(problem, spp=spp, seed=seed, sensor=sensor, depth=prepared.depth)
         renders[sensor] = np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
-        gradients[sensor] = np.nan_to_num(method.images(problem, fields, spp=gradient_spp, seed=seed,
-                                                        sensor=sensor), nan=0.0, posinf=0.0, neginf=0.0)
+        if per_scalar:
+            gradients[sensor] = np.nan_to_num(method.images(problem, fields, spp=gradient_spp, seed=seed,
+                                                            sensor=sensor), nan=0.0, posinf=0.0, neginf=0.0)
     return renders, gradients

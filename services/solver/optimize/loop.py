@@ -40,8 +40,10 @@ from services.solver.optimize.images import ImageSchedule, render_views
 from services.solver.optimize.optimizers import ParameterOptimizer, make_optimizer
 from services.solver.optimize.optimizers.gauss_newton import BLOCK, hessian_of, jacobian_matrix
 from services.solver.optimize.recipe import Recipe, choose_recipe, grow_batch
+from services.solver.optimize.regularize import regularized
 from services.solver.optimize.report import RunAborted, RunOutcome, RunReporter, StopReason
 from services.solver.optimize.setup import Prepared, prepare
+from services.solver.optimize.textures import TextureReport, record_fields
 from services.solver.optimize.views import ViewStream
 from services.solver.scene.closure import closure
 from services.solver.seeds import derive_seed
@@ -112,6 +114,7 @@ class InverseRenderingRun:
         self.warm = warm            # the checkpoint of spec.warm_start's job (services.solver.optimize.warm_start)
         self.warm_report: dict | None = None
         self.method_name = str(spec.method)  # the method that runs: an auto job's choice once execute() made it
+        self.listed: TextureReport | None = None  # which scalars reports list (textures are summarised)
 
     def execute(self) -> RunOutcome:
         """Run to the end, to a cancel or to an interruption. A job that fails returns a failed
@@ -130,7 +133,9 @@ class InverseRenderingRun:
         started = time.perf_counter()
         state = trainer = None
         try:
-            prepared = prepare(self.spec, scene_file=self.scene_file)
+            prepared = prepare(self.spec, scene_file=self.scene_file,
+                               on_phase=lambda what: self.reporter.progress("preparing", {"what": what}))
+            self.listed = prepared.textures
             recipe = choose_recipe(self.spec, prepared.problem, len(prepared.targets),
                                    closure=lambda: closure(prepared.problem.scene, seed=self.spec.seed))
             self.method_name = recipe.method
@@ -139,6 +144,8 @@ class InverseRenderingRun:
             state = self._initial_state(prepared, recipe, trainer)
             self.reporter.plan(self._plan(prepared, built, recipe))
             self.reporter.targets(prepared.targets)
+            if prepared.textures.targets(prepared.target_values):   # final/<key>.target, for comparison
+                self.reporter.textures(None, prepared.textures.targets(prepared.target_values))
             stream = ViewStream(sorted(prepared.targets), derive_seed(self.spec.seed, "batches"))
             for k in range(state.next_iteration, self.spec.iterations):
                 self._stop_if_asked()
@@ -148,6 +155,8 @@ class InverseRenderingRun:
                     self.reporter.plan(self._plan(prepared, built, recipe))
                 if state.next_iteration % self.spec.checkpoint_every == 0 or state.next_iteration == self.spec.iterations:
                     self._checkpoint(state, recipe, trainer)
+            if prepared.textures:
+                self.reporter.textures(None, prepared.textures.images(state.parameters))
             if isinstance(self.reporter, BackgroundReporter):
                 self.reporter.flush()  # success only once every report is written
             return self._outcome(Outcome.SUCCEEDED, state, started)
@@ -273,7 +282,8 @@ class InverseRenderingRun:
             state.hessian = self._curvature(problem, source, fields, jacobians, seeds, recipe, state,
                                             len(prepared.targets), learning_rate(spec, k))
         lr = learning_rate(spec, k)
-        updated = state.optimizer.step(state.parameters, dz_dp, prepared.lower, prepared.upper, lr=lr,
+        step_gradient = regularized(prepared.textures, spec.textures, dz_dp, state.parameters, k, spec.iterations)
+        updated = state.optimizer.step(state.parameters, step_gradient, prepared.lower, prepared.upper, lr=lr,
                                        hessian=state.hessian)
         state.views_offset = batch.offset
         problem.parameters.assign(updated)
@@ -287,9 +297,12 @@ class InverseRenderingRun:
             problem.parameters.assign(updated)
         t4 = time.perf_counter()
         state.images.spent(t4 - t3, t4 - t0, written=write)
+        if write and prepared.textures:  # each texture and its gradient (a texture too), never P images
+            self.reporter.textures(k, prepared.textures.images(state.parameters) | prepared.textures.gradients(dz_dp))
         record = IterationRecord(
-            iteration=k, loss=loss, parameters=state.parameters.tolist(), updated_parameters=updated.tolist(),
-            dz_dp=dz_dp.tolist(), learning_rate=lr, images=write, sanitized=dict(problem.sanitized),
+            iteration=k, loss=loss, **record_fields(prepared.textures, state.parameters, updated, dz_dp,
+                                                    prepared.target_values),
+            learning_rate=lr, images=write, sanitized=dict(problem.sanitized),
             views=batch.sensors, optimizer=state.optimizer.describe() or None,
             seconds={"training": t1 - t0, "gradient": t2 - t1, "step": t3 - t2, "images": t4 - t3},
             parameter_error=(float(np.max(np.abs(state.parameters - prepared.target_values)))
@@ -341,7 +354,7 @@ class InverseRenderingRun:
     # -------------------------------------------------------------- reports
 
     def _plan(self, prepared: Prepared, built: Built, recipe: Recipe) -> dict:
-        problem, trainer = prepared.problem, built.trainer
+        problem, trainer, textures = prepared.problem, built.trainer, prepared.textures
         width, height = problem.scene.resolution()
         return {
             "method": self.method_name,
@@ -349,12 +362,13 @@ class InverseRenderingRun:
             "realised_by": type(built.method).__name__,
             "fields": {"radiance": trainer is not None and trainer.radiance is not None,
                        "differential": trainer is not None and trainer.differential is not None},
-            "scalars": problem.parameters.labels,
+            "scalars": textures.labels,
             "keys": problem.parameters.keys,
-            "init": prepared.init.tolist(),
-            "lower": prepared.lower.tolist(),
-            "upper": [u if np.isfinite(u) else None for u in prepared.upper.tolist()],
-            "target_values": None if prepared.target_values is None else prepared.target_values.tolist(),
+            "init": textures.scalars(prepared.init),
+            "lower": textures.scalars(prepared.lower),
+            "upper": [u if np.isfinite(u) else None for u in textures.scalars(prepared.upper)],
+            "target_values": None if prepared.target_values is None else textures.scalars(prepared.target_values),
+            "textures": textures.plan(prepared.init, prepared.lower, prepared.upper, prepared.target_values),
             "sensors": sorted(prepared.targets),
             "resolution": [width, height],
             "depths": prepared.depths,
@@ -378,7 +392,8 @@ class InverseRenderingRun:
                  field: str | None = None) -> RunOutcome:
         return RunOutcome(status=status, iterations=state.next_iteration if state is not None else 0,
                           seconds=time.perf_counter() - started,
-                          parameters=state.parameters.tolist() if state is not None else None,
+                          parameters=None if state is None else (self.listed.scalars(state.parameters) if self.listed
+                                                                 is not None else state.parameters.tolist()),
                           error=error, field=field)
 
 

@@ -26,6 +26,8 @@ What the rules rest on (``bench/results/mitsuba-loop.md``, ``bench/results/regim
 * **One view per iteration at 1 spp**, the batch doubled by the run itself when the steps keep
   reversing (noise-dominated): views while there are more, then samples per
   pixel; kept as it is under Adam, whose moments average the noise.
+* **A texture** (``bench/results/textures*.md``): Adam (a Gauss-Newton step would need a P x P
+  curvature), every view at :data:`TEXTURE_SPP` spp per iteration (:func:`texture_batch`).
 """
 
 from __future__ import annotations
@@ -49,6 +51,8 @@ MAX_GROWTH = 16
 CLOSED = 0.95
 #: Levenberg-Marquardt's trust-radius growth in an open scene and in a closed one.
 OPEN_GROWTH, CLOSED_GROWTH = 2.0, 1.5
+#: Samples per pixel of a texture job whose job leaves them unset (:func:`texture_batch`).
+TEXTURE_SPP = 16
 
 
 @dataclass(frozen=True)
@@ -117,6 +121,9 @@ def choose_recipe(spec: JobSpec, problem: Problem, sensors: int,
         recipe.decide("optimizer", "adam", f"the {spec.loss} loss has no Gauss-Newton model")
     elif problem.layout.active == 0:
         recipe.decide("optimizer", "adam", "no scalar changes the image: nothing to model")
+    elif problem.parameters.has_textures:
+        recipe.decide("optimizer", "adam", f"a texture's {problem.parameters.n} scalars: a Gauss-Newton step would "
+                                           f"solve with a P x P curvature (services.solver.optimize.carry)")
     else:
         renders = jacobian_renders(problem) if method == Method.PRB and spec.jacobian == "method" else 0
         if renders <= MAX_JACOBIAN_RENDERS:
@@ -131,7 +138,7 @@ def choose_recipe(spec: JobSpec, problem: Problem, sensors: int,
                                                f"(more than {MAX_JACOBIAN_RENDERS}): Adam on the adjoint gradient")
     if recipe.optimizer == "levenberg-marquardt":
         _trust_growth(recipe, closure)
-    if spec.views_per_iteration == "auto":
+    if spec.views_per_iteration == "auto" and not problem.parameters.has_textures:
         grows = recipe.optimizer != "adam"
         start = (f"one of the {sensors} views per iteration (the fastest hand-written loop's batch too)"
                  if sensors > 1 else "the job's one view")
@@ -139,7 +146,9 @@ def choose_recipe(spec: JobSpec, problem: Problem, sensors: int,
                                                f"first, then samples per pixel (up to {MAX_GROWTH}x)"
                                                if grows else "; Adam's moments average the noise"))
         recipe.adaptive_views = grows
-    if spec.render.spp == 1 and spec.render.gradient_spp == 1:
+    if problem.parameters.has_textures and spec.views_per_iteration == "auto":
+        texture_batch(spec, recipe, sensors)
+    elif spec.render.spp == 1 and spec.render.gradient_spp == 1:
         recipe.decide("spp", 1, "1 sample per pixel: the fastest to a given error in every scene measured; the "
                                 "optimizer averages the noise across iterations")
     return recipe
@@ -160,6 +169,22 @@ def _trust_growth(recipe: Recipe, measure: Callable[[], float | None] | None) ->
         recipe.trust_growth = CLOSED_GROWTH
         recipe.decide("trust_growth", CLOSED_GROWTH, f"{share} (a closed scene): the images curve strongly in the "
                                                      f"albedos, and the trust region grows by 3/2 on steps that agree")
+
+
+def texture_batch(spec: JobSpec, recipe: Recipe, sensors: int) -> None:
+    """A texture job's batch: every view, and :data:`TEXTURE_SPP` samples per pixel unless the
+    job sets them. Each texel is seen by a few pixels only; at one view and 1 spp Adam's steps stay
+    noise-dominated (``bench/results/textures-one-view.md``: 22.7 dB after 960 iterations, where
+    every view at 16 spp reaches 34.8 dB in 60 iterations of the same total time,
+    ``bench/results/textures.md``)."""
+    recipe.views, recipe.adaptive_views = sensors, False
+    recipe.decide("views", sensors, "a texture: every view per iteration (each texel is seen by few pixels; one view "
+                                    "at a time leaves Adam's steps noise-dominated, bench/results/textures*.md)")
+    if not {"spp", "gradient_spp"} & spec.render.model_fields_set:
+        recipe.spp = recipe.gradient_spp = TEXTURE_SPP
+        recipe.decide("spp", TEXTURE_SPP, f"a texture: {TEXTURE_SPP} samples per pixel (render.spp and gradient_spp "
+                                          f"left unset)")
+    recipe.first_size = recipe.views * recipe.gradient_spp
 
 
 def grow_batch(recipe: Recipe, sensors: int, iteration: int) -> Decision | None:

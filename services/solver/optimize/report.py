@@ -40,6 +40,11 @@ class RunReporter(Protocol):
         """One iteration; ``renders`` (sensor -> ``(H, W, 3)``) and ``gradients`` (sensor ->
         ``(P, H, W, 3)`` float32) only on iterations that write images."""
 
+    def textures(self, iteration: int | None, images: dict[str, np.ndarray]) -> None:
+        """A texture job's textures ``(H, W, C)`` float32 by name: at an iteration that writes
+        images (``<key>`` the parameters the step was taken at, ``<key>.dz_dp`` its gradient), and
+        at the end (``iteration`` None: the recovered ``<key>``)."""
+
     def checkpoint(self, state: bytes, next_iteration: int) -> None:
         """Everything needed to continue at ``next_iteration`` (see ``optimize.checkpoint``)."""
 

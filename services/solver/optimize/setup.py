@@ -14,6 +14,7 @@ from __future__ import annotations
 import base64
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,6 +27,8 @@ from services.solver.estimators.layout import DerivativeLayout
 from services.solver.estimators.methods import method_class
 from services.solver.estimators.problem import Problem
 from services.solver.estimators.render import UNBIASED, PathDepth, missing_energy, render
+from services.solver.optimize.carry import check_carry
+from services.solver.optimize.textures import TextureReport
 from services.solver.scene.facts import SceneFacts, probe_scene
 from services.solver.scene.load import LoadedScene, load_scene
 from services.solver.scene.params import ParameterSet
@@ -59,6 +62,10 @@ class Prepared:
     facts: SceneFacts | None = None
     depth: PathDepth = UNBIASED
     seconds: dict = field(default_factory=dict)
+    textures: TextureReport = field(init=False)   # the listed scalars and the textures of p
+
+    def __post_init__(self):
+        self.textures = TextureReport(self.problem.parameters)
 
 
 def load_job_scene(spec: JobSpec, scene_file: Path | None = None) -> LoadedScene:
@@ -79,10 +86,14 @@ def load_job_scene(spec: JobSpec, scene_file: Path | None = None) -> LoadedScene
         raise InvalidJob("scene", f"Mitsuba could not load the scene: {exc}") from None
 
 
-def _broadcast(value, size: int, field: str) -> np.ndarray:
+def _broadcast(value, size: int, field: str, channels: int | None = None) -> np.ndarray:
+    """``value`` as ``(size,)``: one number broadcast, or every component; for a texture of
+    ``channels`` channels also one number per channel, repeated at every texel."""
     array = np.atleast_1d(np.asarray(value, dtype=np.float64))
     if array.size == 1:
         return np.full(size, array[0])
+    if channels is not None and array.size == channels and size % channels == 0:
+        return np.tile(array, size // channels)
     if array.size != size:
         raise InvalidJob(field, f"has {array.size} values, the parameter has {size} component(s)")
     return array
@@ -111,12 +122,15 @@ class Checked:
     target_values: np.ndarray | None
 
     def report(self) -> dict:
-        """What the host needs to enforce its caps: films, sensors, scalars."""
+        """What the host needs to enforce its caps: films, sensors, scalars (the listed ones: every
+        parameter that is not a texture), texels (of the textures)."""
+        listed = TextureReport(self.parameters)
         return {"sensors": [list(self.scene.resolution(i)) for i in range(self.scene.sensor_count)],
-                "scalars": self.parameters.n, "labels": self.parameters.labels}
+                "scalars": int(listed.listed.sum()), "labels": listed.labels, "texels": listed.texels}
 
 
-def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None = None) -> Checked:
+def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None = None,
+          max_texels: int | None = None) -> Checked:
     """Load the scene and check everything but the synthetic rendering (shared by :func:`prepare`
     and the service's preflight). Raises :class:`InvalidJob` naming the field."""
     scene = load_job_scene(spec, scene_file)
@@ -126,15 +140,22 @@ def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None
     except ValueError as exc:
         bad = [i for i, key in enumerate(keys) if f"{key!r}" in str(exc)]
         raise InvalidJob(f"parameters[{bad[0]}].key" if bad else "parameters", str(exc)) from None
-    if max_scalars is not None and parameters.n > max_scalars:
-        raise InvalidJob("parameters", f"{parameters.n} scalars exceed the limit of {max_scalars} "
-                                       f"(an RGB value counts 3; NDRF_MAX_PARAMETERS)")
+    split = TextureReport(parameters)
+    listed = int(split.listed.sum())
+    if max_scalars is not None and listed > max_scalars:
+        raise InvalidJob("parameters", f"{listed} scalars exceed the limit of {max_scalars} "
+                                       f"(an RGB value counts 3; textures count by texel instead; NDRF_MAX_PARAMETERS)")
+    if max_texels is not None and split.texels > max_texels:
+        raise InvalidJob("parameters", f"the textures have {split.texels} texels, more than the limit of {max_texels} "
+                                       f"(NDRF_MAX_TEXELS)")
+    check_carry(spec, parameters.n, [t.key for t in split.textures])
     scene_values = parameters.values()
 
     init, lower, upper, offset = [], [], [], 0
     for i, (p, info) in enumerate(zip(spec.parameters, parameters.infos)):
         own = scene_values[offset:offset + info.size]
-        init.append(own if p.init is None else _broadcast(p.init, info.size, f"parameters[{i}].init"))
+        channels = info.shape[-1] if info.shape is not None else None
+        init.append(own if p.init is None else _broadcast(p.init, info.size, f"parameters[{i}].init", channels))
         lo, hi = _bounds(p.key, info.owner, p.bounds)
         lower.append(np.full(info.size, lo))
         upper.append(np.full(info.size, hi))
@@ -162,17 +183,26 @@ def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None
             targets[image.sensor] = data
     else:
         synthetic = spec.targets.synthetic
-        target_values = np.concatenate([
-            _broadcast(synthetic.values[key], info.size, f"targets.synthetic.values.{key}")
-            for key, info in zip(keys, parameters.infos)])
+        own, offset, values = scene_values, 0, []
+        for key, info in zip(keys, parameters.infos):
+            value = synthetic.values[key]
+            channels = info.shape[-1] if info.shape is not None else None
+            values.append(own[offset:offset + info.size] if value is None else
+                          _broadcast(value, info.size, f"targets.synthetic.values.{key}", channels))
+            offset += info.size
+        target_values = np.concatenate(values)
     return Checked(scene, parameters, init_v, lower_v, upper_v, targets, target_values)
 
 
-def prepare(spec: JobSpec, *, scene_file: Path | None = None, method: str | None = None) -> Prepared:
+def prepare(spec: JobSpec, *, scene_file: Path | None = None, method: str | None = None,
+            on_phase: Callable[[str], None] = lambda what: None) -> Prepared:
     """Load and check everything a job needs, plan the effects to simulate (for ``method``,
     default the job's; ``prb``'s for an ``auto`` job), and render synthetic targets (unbiased:
-    unbounded paths with Russian roulette, unless the job fixes ``targets.synthetic.max_depth``)."""
+    unbounded paths with Russian roulette, unless the job fixes ``targets.synthetic.max_depth``).
+    ``on_phase`` hears what is being done, before each phase that may take long (a texture job's
+    scene load and targets; the effect probe)."""
     started = time.perf_counter()
+    on_phase("loading and checking the scene")
     c = check(spec, scene_file)
     loaded = time.perf_counter()
     problem = Problem(c.scene, c.parameters, delta_depth=spec.training.delta_depth)
@@ -181,6 +211,7 @@ def prepare(spec: JobSpec, *, scene_file: Path | None = None, method: str | None
     name = method or (Method.PRB if spec.method == AUTO else spec.method)
     facts = None
     if needs_effect_plan(name, spec.jacobian):
+        on_phase(f"probing the scene's effects for {c.parameters.n} scalars (forward-mode derivatives)")
         facts = probe_scene(c.scene, c.parameters, seed=derive_seed(spec.seed, "probe"), max_delta_depth=64)
         problem.apply_plan(plan_effects(facts, name, method_class(name).uses, spec.effects, spec.training.delta_depth))
     warnings: list[str] = []
@@ -192,6 +223,7 @@ def prepare(spec: JobSpec, *, scene_file: Path | None = None, method: str | None
     if c.target_values is not None:
         assert isinstance(spec.targets, SyntheticTargets)  # target values come from synthetic targets only
         synthetic = spec.targets.synthetic
+        on_phase(f"rendering {c.scene.sensor_count} synthetic target(s) at {synthetic.spp} spp")
         c.parameters.assign(c.target_values)
         for sensor in range(c.scene.sensor_count):
             targets[sensor] = render(problem, spp=synthetic.spp, sensor=sensor,

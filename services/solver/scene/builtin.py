@@ -17,6 +17,8 @@ declared at the top level and referenced by the shapes, so parameter keys read a
 ``room-closed-8``   The ``hidden-object`` room with a sphere in sight (``ball.reflectance.value``) and
                     8 cameras of 128x128 around it: a multi-view job with long light paths.
 ``room-open-8``     The same room without its front wall: light escapes, paths are shorter.
+``textured-box``    The Cornell box without its blocks, a 64 x 64 albedo texture on the back wall
+                    (``wall.reflectance.data``), 4 cameras (:mod:`.textured`).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from collections.abc import Callable
 
 from schemas.scenes import BUILTIN_SCENES
 from services.solver.backend import use_mitsuba
+from services.solver.scene.textured import textured_box_builtin
 
 
 def _diffuse(rgb) -> dict:
@@ -163,6 +166,7 @@ FACTORIES: dict[str, Callable[[], dict]] = {
     "closet-box": closet_box,
     "room-closed-8": room_closed_8,
     "room-open-8": room_open_8,
+    "textured-box": textured_box_builtin,
 }
 if set(FACTORIES) != set(BUILTIN_SCENES):  # the catalogue and the factories must name the same scenes
     raise ImportError(f"built-in scenes differ: {sorted(set(FACTORIES) ^ set(BUILTIN_SCENES))}")

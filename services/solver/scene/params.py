@@ -37,6 +37,12 @@ class ParameterInfo:
     owner: Owner
     owner_type: str
     value: tuple[float, ...]
+    #: ``(H, W, C)`` of a bitmap texture's ``data`` (a texture parameter); None for a value
+    shape: tuple[int, ...] | None = None
+
+    @property
+    def texture(self) -> bool:
+        return self.shape is not None
 
 
 @dataclass(frozen=True)
@@ -94,8 +100,18 @@ def differentiable_parameters(params: mi.SceneParameters) -> list[ParameterInfo]
         kind, node = _owner(params, key)
         value = _as_numpy(params[key])
         plugin = str(node).split("[", 1)[0].strip()  # e.g. SmoothDiffuse, AreaLight
-        out.append(ParameterInfo(key, value.size, kind, plugin, tuple(float(v) for v in value)))
+        shape = texture_shape(params[key])
+        if shape is not None:  # listed by its mean per channel: a texture's texels are not a list to show
+            value = value.reshape(-1, shape[-1]).mean(axis=0)
+        out.append(ParameterInfo(key, int(np.prod(dr.shape(params[key]))), kind, plugin,
+                                 tuple(float(v) for v in value), shape))
     return out
+
+
+def texture_shape(value) -> tuple[int, ...] | None:
+    """``(H, W, C)`` when ``value`` is a bitmap texture's ``data`` (a 3-D tensor), else None."""
+    shape = tuple(int(d) for d in dr.shape(value))
+    return shape if isinstance(value, mi.TensorXf) and len(shape) == 3 else None
 
 
 class ParameterSet:
@@ -116,16 +132,28 @@ class ParameterSet:
                 known = key in params.keys()  # noqa: SIM118 (SceneParameters is not a dict)
                 reason = "is a key, but not a differentiable material or emitter parameter" if known else (
                     "is not a key of this scene")
+                if known and type(params[key]).__name__ == "TensorXu8":
+                    reason = ("is an 8-bit texture: Mitsuba keeps an 8-bit image file (PNG, JPEG) as integers, which "
+                              "have no derivative; give the texture as a float image (EXR)")
                 raise ValueError(f"parameter {key!r} {reason}; optimizable keys: {', '.join(allowed) or 'none'}")
         self.params = params
         self.keys = list(keys)
         self.infos = [allowed[k] for k in self.keys]
-        self.scalars = [Scalar(k, c) for k, info in zip(self.keys, self.infos) for c in range(info.size)]
         self.owners = {k: _owner(params, k)[1] for k in self.keys}
+        self.n = sum(info.size for info in self.infos)
+        self._scalars: list[Scalar] | None = None
 
     @property
-    def n(self) -> int:
-        return len(self.scalars)
+    def scalars(self) -> list[Scalar]:
+        """One :class:`Scalar` per entry of ``p``, made on first use (a texture's million texels
+        need none unless a per-scalar path asks for them)."""
+        if self._scalars is None:
+            self._scalars = [Scalar(k, c) for k, info in zip(self.keys, self.infos) for c in range(info.size)]
+        return self._scalars
+
+    @property
+    def has_textures(self) -> bool:
+        return any(info.texture for info in self.infos)
 
     @property
     def labels(self) -> list[str]:
@@ -144,9 +172,12 @@ class ParameterSet:
         """Write the flat vector ``values`` (shape ``(n,)``) into the scene."""
         values = np.asarray(values, dtype=np.float64).reshape(-1)
         if values.size != self.n:
-            raise ValueError(f"expected {self.n} values ({', '.join(self.labels)}), got {values.size}")
+            named = f" ({', '.join(self.labels)})" if self.n <= 64 else ""
+            raise ValueError(f"expected {self.n} values{named}, got {values.size}")
         if not np.all(np.isfinite(values)):
-            raise ValueError(f"refusing to write non-finite parameter values {values.tolist()}")
+            bad = np.flatnonzero(~np.isfinite(values))
+            raise ValueError(f"refusing to write non-finite parameter values ({bad.size} of {values.size}, first at "
+                             f"index {int(bad[0])}: {values[bad[0]]})")
         offset = 0
         for key, info in zip(self.keys, self.infos):
             self.params[key] = _like(self.params[key], values[offset:offset + info.size])

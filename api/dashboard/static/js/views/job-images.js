@@ -1,5 +1,5 @@
 // The images of a job: the render of an iteration beside the target, and the gradient image of
-// every scalar with its colour bar. A slider picks among the iterations that wrote images; at its
+// every scalar with its colour bar (a texture job: each texture and its gradient texture instead). A slider picks among the iterations that wrote images; at its
 // right end it follows the newest one.
 
 import { authUrl } from "../api.js";
@@ -23,6 +23,7 @@ function setSource(img, url, retry = false) {
 export function imagesPanel(jobId) {
   const base = `/v1/jobs/${encodeURIComponent(jobId)}`;
   let withImages = [], index = -1, follow = true, labels = [], sensors = [0], sensor = 0, started = false;
+  let textureKeys = [];
 
   const render = picture("render-image", "candidate render");
   const target = picture("target-image", "target image");
@@ -35,6 +36,10 @@ export function imagesPanel(jobId) {
   const grid = h("div.gradient-grid", { dataset: { testid: "gradient-grid" } });
   const stackLink = h("a.link-small", { download: "" }, "all gradients (.npy)");
   const note = h("p.muted.small", "RGB sum of dI/dp per scalar; red = positive, blue = negative, grey = 0.");
+  // A texture parameter: its value and its gradient dz/dp (a texture too) at the iteration
+  const textureGrid = h("div.gradient-grid", { dataset: { testid: "texture-grid" } });
+  const textures = h("div.gradients", { hidden: true },
+    h("div.card-subhead", h("h3", "Textures and their gradient dz/dp")), textureGrid);
 
   slider.addEventListener("input", () => {
     index = Number(slider.value);
@@ -51,7 +56,8 @@ export function imagesPanel(jobId) {
         h("figure.image-figure.missing", target, h("figcaption", "Target"))),
       h("div.gradients",
         h("div.card-subhead", h("h3", "Gradient images dI/dp"), h("span.spacer"), stackLink),
-        grid, note)));
+        grid, note),
+      textures));
 
   function figures() {
     grid.replaceChildren(...labels.map((label, p) => h("figure.gradient-figure.missing", { dataset: { scalar: p } },
@@ -60,6 +66,18 @@ export function imagesPanel(jobId) {
       h("div.colorbar-slot"),
       h("a.link-small", { download: "", dataset: { role: "npy" } }, ".npy"))));
     grid.querySelectorAll("img").forEach((img, p) => { img.dataset.scalar = String(p); });
+  }
+
+  function textureFigures() {
+    textureGrid.replaceChildren(...textureKeys.flatMap((key) => [key, `${key}.dz_dp`].map((name) =>
+      h("figure.gradient-figure.missing", { dataset: { texture: name } },
+        picture("texture-image", name), h("figcaption", h("span.mono.ellipsis", { title: name }, name))))
+      .concat([h("figure.gradient-figure.missing", { dataset: { target: key } },   // a synthetic job's target
+        picture("texture-target", `${key} target`), h("figcaption", h("span.mono.ellipsis", "target")))])));
+    textureGrid.querySelectorAll("figure[data-target]").forEach((figure) => {
+      setSource(figure.querySelector("img"), `${base}/final/${encodeURIComponent(figure.dataset.target)}.target.png`);
+    });
+    textures.hidden = textureKeys.length === 0;
   }
 
   function show(force = false) {
@@ -85,6 +103,10 @@ export function imagesPanel(jobId) {
       figure.querySelector(".colorbar-slot").replaceChildren(colorBar(scales[p]));
       figure.querySelector("[data-role=npy]").href = authUrl(`${base}/iterations/${k}/gradients/${p}.npy`);
     });
+    textureGrid.querySelectorAll("figure[data-texture]").forEach((figure) => {
+      const name = encodeURIComponent(figure.dataset.texture);
+      setSource(figure.querySelector("img"), `${base}/iterations/${k}/textures/${name}.png`, force);
+    });
   }
 
   /** New records (sorted by iteration) or plan: keep the slider and the images in step. */
@@ -93,6 +115,12 @@ export function imagesPanel(jobId) {
     if (scalars.join("\n") !== labels.join("\n")) {
       labels = scalars;
       figures();
+      element.dataset.shown = "";
+    }
+    const keys = ((plan && plan.textures) || []).map((t) => t.key);
+    if (keys.join("\n") !== textureKeys.join("\n")) {
+      textureKeys = keys;
+      textureFigures();
       element.dataset.shown = "";
     }
     const planSensors = (plan && plan.sensors) || [0];

@@ -9,7 +9,7 @@ function groups(plan) {
   const labels = plan.scalars || [];
   const keys = plan.keys || [...new Set(labels.map((l) => l.replace(/\[\d+\]$/, "")))];
   return keys.map((key) => ({ key, scalars: labels.map((l, i) => [l, i]).filter(([l]) => l === key || l.startsWith(`${key}[`))
-    .map(([, i]) => i) }));
+    .map(([, i]) => i) })).filter((group) => group.scalars.length > 0);   // textures have no listed scalars
 }
 
 /** The newest parameter values: after the last step, or the initial ones. */

@@ -129,6 +129,7 @@ export function jobView(root, jobId) {
       checkpoint: seen((event) => { state.checkpoint = event.iteration; }),
       warmup: seen((event) => { state.warmup = event; }),
       auto: seen((event) => { state.warmup = { auto: event.candidates }; }),
+      preparing: seen((event) => { state.warmup = { preparing: event.what }; }),
       resumed: seen((event) => {          // a new attempt recomputes the iterations after its checkpoint
         for (const k of [...state.records.keys()]) if (k >= event.iteration) state.records.delete(k);
         state.job.iteration = event.iteration - 1;
@@ -245,6 +246,11 @@ export function jobView(root, jobId) {
     const event = state.warmup;
     warmup.hidden = !event || records.length > 0 || job.status !== "running";
     if (warmup.hidden) return;
+    if (event.preparing) {              // before the first iteration: scene, effect probe, targets
+      warmupBar.style.width = "0%";
+      warmupText.textContent = `Preparing: ${event.preparing}`;
+      return;
+    }
     if (event.auto) {                   // method "auto": the trial that picks the method runs first
       warmupBar.style.width = "0%";
       warmupText.textContent = `Choosing the method: timing ${event.auto.join(", ")} on this scene`;

@@ -1,0 +1,57 @@
+"""What each gradient method and optimizer can carry: a job whose parameters one of its choices
+cannot carry is refused before it runs, with the reason (an :class:`InvalidJob` naming the field).
+
+=====================  =====================================================================
+``prb``                any count: one adjoint render gives ``dz/dp`` for every scalar, texels
+                       included (a texture's gradient is a texture, never P images)
+``ndrf-lhs/-rhs``      not textures: ``dL_theta`` has three outputs per scalar (its output
+                       layer grows with P; the paper's Sec. 8 limitation; the many-parameter
+                       head is not built)
+``direct``,            not textures: they form dz/dp through per-scalar derivative images at
+``radiance-cache``     the camera hits (P x H x W x 3)
+``levenberg-marquardt``,  not textures: the steps solve with a P x P curvature (a 64 x 64
+``gauss-newton``       texture: 12,288^2 doubles, 1.2 GB) from P Jacobian images per view
+``jacobian:``          not textures: dL_theta (as above)
+``differential-field``
+=====================  =====================================================================
+
+``auto`` takes ``prb`` with Adam for a job with a texture (``services.solver.optimize.recipe``).
+"""
+
+from __future__ import annotations
+
+from schemas.errors import InvalidJob
+from schemas.job import SECOND_ORDER, JobSpec
+from schemas.methods import AUTO, Method
+
+#: Methods that carry any number of scalars, textures included.
+ANY_COUNT = frozenset({Method.PRB})
+
+_WHY = {
+    Method.NDRF_LHS: "dL_theta has three outputs per scalar, so its output layer grows with the parameter count "
+                     "(the paper's Sec. 8 limitation; the many-parameter head is not built)",
+    Method.NDRF_RHS: "dL_theta has three outputs per scalar, so its output layer grows with the parameter count "
+                     "(the paper's Sec. 8 limitation; the many-parameter head is not built)",
+    Method.DIRECT: "it forms dz/dp from per-scalar derivative images at the camera hits (P x H x W x 3)",
+    Method.RADIANCE_CACHE: "it forms dz/dp from per-scalar derivative images at the camera hits (P x H x W x 3) "
+                           "and trains L_phi beside them",
+}
+
+
+def check_carry(spec: JobSpec, scalars: int, textures: list[str]) -> None:
+    """Raise :class:`InvalidJob` when the job's method, optimizer or Jacobian cannot carry its
+    parameters: ``scalars`` optimized scalars of which the parameters ``textures`` are bitmap
+    textures. Jobs without a texture are left as they are (the scalar cap applies to them)."""
+    if not textures:
+        return
+    what = f"{scalars} scalars (texture {', '.join(textures)})"
+    if spec.method != AUTO and spec.method not in ANY_COUNT:
+        raise InvalidJob("method", f"method {spec.method!r} cannot carry {what}: {_WHY[Method(spec.method)]}; "
+                                   f"use prb (or auto)")
+    if spec.optimizer in SECOND_ORDER:
+        gib = scalars * scalars * 8 / 2**30
+        raise InvalidJob("optimizer", f"optimizer {spec.optimizer!r} cannot carry {what}: its steps solve with a "
+                                      f"P x P curvature ({gib:.1f} GiB) from per-scalar Jacobian images; use adam "
+                                      f"(or auto)")
+    if spec.jacobian == "differential-field":
+        raise InvalidJob("jacobian", f"jacobian 'differential-field' cannot carry {what}: {_WHY[Method.NDRF_LHS]}")
