@@ -43,14 +43,11 @@ one mesh named by 50,000 shapes costs what it costs Mitsuba.
 
 from __future__ import annotations
 
-import base64
-import binascii
 import logging
 import re
 from collections import defaultdict
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from xml.etree.ElementTree import Element, ParseError, TreeBuilder
 
 import defusedxml
@@ -60,18 +57,17 @@ from schemas.errors import InvalidJob
 from services.uploads.defaults import resolve_file_defaults
 from services.uploads.images import check_image
 from services.uploads.meshes import MESH_TYPES, MeshSummary, check_mesh
+from services.uploads.paths import (
+    MAIN_XML_NAME,
+    decode_base64,
+    path_problem,
+    reserved_problem,
+)
 
 log = logging.getLogger(__name__)
 
-MAIN_XML_NAME = "scene.xml"  # where services.solver.scene.load.write_scene_files writes the document
-RESERVED_FOLDERS = ("plugins", "data")  # Mitsuba finds its plugins and data via the file resolver
 MAX_INCLUDE_DEPTH = 15  # Mitsuba's ParserConfig.max_include_depth
 MAX_INCLUDE_EXPANSIONS = 1024  # fragments Mitsuba would parse, repeats included
-MAX_PATH_CHARS = 255
-MAX_NAME_BYTES = 255  # NAME_MAX: UTF-8 bytes of one file or folder name
-MAX_PATH_BYTES = 4096  # PATH_MAX
-
-_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 _PLUGIN_TYPE = re.compile(r"[A-Za-z0-9_]+")
 
 
@@ -120,7 +116,7 @@ def resolve_scene_defaults(xml: str, limits: UploadLimits = UploadLimits()) -> s
     size = len(xml.encode("utf-8", "surrogatepass"))
     if size > limits.max_xml_bytes:
         raise InvalidJob("scene.xml", f"has {size} bytes; at most {limits.max_xml_bytes} are allowed")
-    return resolve_file_defaults(_parse(xml, "scene.xml", limits)[0], xml, "scene.xml")
+    return resolve_file_defaults(parse_scene_xml(xml, "scene.xml", limits)[0], xml, "scene.xml")
 
 
 def check_scene_upload(xml: str, files: Mapping[str, str],
@@ -137,7 +133,7 @@ def check_scene_upload(xml: str, files: Mapping[str, str],
     if size > limits.max_xml_bytes:
         raise InvalidJob("scene.xml", f"has {size} bytes; at most {limits.max_xml_bytes} are allowed")
     blobs = _decode_files(files, limits, budget=limits.max_total_bytes - size)
-    root, elements = _parse(xml, "scene.xml", limits)
+    root, elements = parse_scene_xml(xml, "scene.xml", limits)
     main = _Document(MAIN_XML_NAME, root, size, elements, _check_document(root, "scene.xml", blobs))
     documents = _check_includes(blobs, main, limits)
     _check_expansion(documents, blobs, limits)
@@ -147,50 +143,7 @@ def check_scene_upload(xml: str, files: Mapping[str, str],
 def scene_references(xml: str) -> tuple[list[str], list[str]]:
     """(include filenames, other file references) found in one XML document, in document order
     (no validation)."""
-    return _references(_parse(xml, "scene.xml")[0])
-
-
-def pack_scene(xml_path: str | Path) -> tuple[str, dict[str, str]]:
-    """Trusted local use (CLI): read an XML file, follow its includes recursively and collect every
-    referenced file relative to the XML's folder; return (xml text, {relative path: base64}) ready
-    for check_scene_upload. Raise FileNotFoundError/ValueError with a clear message for a missing
-    reference or one that leaves the folder."""
-    main = Path(xml_path)
-    folder = main.parent
-    packed: dict[str, str] = {}
-
-    def add(where: Path, what: str, rel: str) -> Path:
-        problem = _path_problem(rel, what)
-        if problem:
-            raise ValueError(f"{where}: {problem}")
-        if not (folder / rel).is_file():
-            raise FileNotFoundError(f"{where}: {what} {rel!r} does not exist in {folder}")
-        packed.setdefault(rel, base64.b64encode((folder / rel).read_bytes()).decode("ascii"))
-        return folder / rel
-
-    def visit(where: Path, text: str) -> Iterator[str]:
-        root = _parse(text, str(where))[0]
-        if where == main:   # the scene's own defaults in its file names, as the service resolves them
-            root = _parse(resolve_file_defaults(root, text, str(where)), str(where))[0]
-        includes, others = _references(root)
-        for name in others:
-            add(where, "file path", name)
-        return iter(includes)
-
-    text = main.read_text(encoding="utf-8")
-    # depth first, in document order, without recursion
-    stack: list[tuple[Path, tuple[Path, ...], Iterator[str]]] = [(main, (main,), visit(main, text))]
-    while stack:
-        where, chain, includes = stack[-1]
-        name = next(includes, None)
-        if name is None:
-            stack.pop()
-            continue
-        fragment = add(where, "include", name)
-        if fragment in chain:
-            raise ValueError(f"{where}: include cycle {' -> '.join(map(str, chain + (fragment,)))}")
-        stack.append((fragment, chain + (fragment,), visit(fragment, fragment.read_text(encoding="utf-8"))))
-    return text, packed
+    return file_references(parse_scene_xml(xml, "scene.xml")[0])
 
 
 def _decode_files(files: Mapping[str, str], limits: UploadLimits, budget: int) -> dict[str, bytes]:
@@ -199,10 +152,10 @@ def _decode_files(files: Mapping[str, str], limits: UploadLimits, budget: int) -
     blobs: dict[str, bytes] = {}
     for path, value in files.items():
         field = f"scene.files[{path}]"
-        problem = _path_problem(path, "file path") or _reserved_problem(path)
+        problem = path_problem(path, "file path") or reserved_problem(path)
         if problem:
             raise InvalidJob(field, problem)
-        blobs[path] = _decode_base64(value, field, limits.max_file_bytes)
+        blobs[path] = decode_base64(value, field, limits.max_file_bytes)
         budget -= len(blobs[path])
         if budget < 0:
             raise InvalidJob("scene.files", f"files and document exceed {limits.max_total_bytes} bytes in total")
@@ -212,62 +165,6 @@ def _decode_files(files: Mapping[str, str], limits: UploadLimits, budget: int) -
             if parent in blobs:
                 raise InvalidJob(f"scene.files[{path}]", f"{parent!r} is uploaded as a file, not a folder")
     return blobs
-
-
-def _decode_base64(value: str, field: str, max_bytes: int) -> bytes:
-    if len(value) > 4 * ((max_bytes + 2) // 3):
-        raise InvalidJob(field, f"decodes to more than {max_bytes} bytes, the limit per file")
-    try:
-        data = base64.b64decode(value, validate=True)
-    except (binascii.Error, ValueError) as exc:
-        raise InvalidJob(field, f"is not valid base64 (standard alphabet, padded, no whitespace): {exc}") from None
-    if len(data) > max_bytes:
-        raise InvalidJob(field, f"decodes to {len(data)} bytes, more than {max_bytes}, the limit per file")
-    return data
-
-
-def _path_problem(path: str, what: str) -> str | None:
-    """Why ``path`` is not a plain relative POSIX path inside the scene folder, or None."""
-    parts = path.split("/")
-    if not path or len(path) > MAX_PATH_CHARS:
-        return f"{what} {path[:MAX_PATH_CHARS]!r} must have 1 to {MAX_PATH_CHARS} characters"
-    if "$" in path:
-        return f"{what} {path!r}: substitution ($) is not allowed in file names"
-    if _CONTROL.search(path):
-        return f"{what} {path!r} must not contain control characters"
-    if "\\" in path or re.match(r"[A-Za-z]:", path):
-        return f"{what} {path!r} must use '/' separators (no backslashes, no drive letters)"
-    if path.startswith("/"):
-        return f"{what} {path!r} must be relative to the scene (no leading '/')"
-    if ".." in parts:
-        return f"{what} {path!r} must stay inside the scene folder (no '..')"
-    if "" in parts or "." in parts:
-        return f"{what} {path!r} must be normalized (no '//', './' or trailing '/')"
-    if parts[0].startswith("~"):
-        return f"{what} {path!r} must not start with '~'"
-    try:
-        size = len(path.encode("utf-8"))
-    except UnicodeEncodeError:
-        return f"{what} {path!r} is not valid Unicode (it contains a lone surrogate)"
-    for part in parts:
-        if len(part.encode("utf-8")) > MAX_NAME_BYTES:
-            return (f"{what} {_short(path)}: the name {_short(part)} has {len(part.encode('utf-8'))} bytes in UTF-8; "
-                    f"at most {MAX_NAME_BYTES} bytes are allowed per file or folder name")
-    if size > MAX_PATH_BYTES:
-        return f"{what} {_short(path)} has {size} bytes in UTF-8; at most {MAX_PATH_BYTES} are allowed"
-    return None
-
-
-def _short(text: str, keep: int = 40) -> str:
-    return repr(text) if len(text) <= keep else repr(text[:keep]) + f"... ({len(text)} characters)"
-
-
-def _reserved_problem(path: str) -> str | None:
-    if path == MAIN_XML_NAME:
-        return f"{MAIN_XML_NAME!r} is reserved for the main document"
-    if "/" in path and path.split("/")[0] in RESERVED_FOLDERS:
-        return f"the top-level folders {', '.join(RESERVED_FOLDERS)} are reserved for Mitsuba's plugins and data"
-    return None
 
 
 class _CappedTree:
@@ -299,7 +196,7 @@ class _CappedTree:
         return self._builder.close()
 
 
-def _parse(document: str | bytes, field: str, limits: UploadLimits = UploadLimits()) -> tuple[Element, int]:
+def parse_scene_xml(document: str | bytes, field: str, limits: UploadLimits = UploadLimits()) -> tuple[Element, int]:
     """Parse text, or bytes that must be UTF-8 (what pugixml assumes without a BOM); returns the
     root and the number of elements. Depth and element count are capped while parsing."""
     try:
@@ -329,7 +226,7 @@ def _file_references(element: Element) -> list[tuple[str, str | None]]:
     return found
 
 
-def _references(root: Element) -> tuple[list[str], list[str]]:
+def file_references(root: Element) -> tuple[list[str], list[str]]:
     elements = list(root.iter())
     includes = [element.get("filename", "") for element in elements if element.tag == "include"]
     others = [value for element in elements if element.tag != "include"
@@ -361,7 +258,7 @@ def _check_document(root: Element, field: str, blobs: Mapping[str, bytes]) -> li
 
 def _check_name(field: str, where: str, what: str, value: str | None) -> str:
     path = value or ""
-    problem = _path_problem(path, what)
+    problem = path_problem(path, what)
     if problem:
         raise InvalidJob(field, f"{where}: {problem}")
     return path
@@ -406,7 +303,7 @@ def _check_includes(blobs: Mapping[str, bytes], main: _Document, limits: UploadL
         if budget < 0:
             raise InvalidJob(field, f"the scene expands to more than {MAX_INCLUDE_EXPANSIONS} includes")
         if name not in documents:
-            root, elements = _parse(blobs[name], _field(name), limits)
+            root, elements = parse_scene_xml(blobs[name], _field(name), limits)
             documents[name] = _Document(name, root, len(blobs[name]), elements,
                                         _check_document(root, _field(name), blobs))
         stack.append((name, chain + (name,), iter(documents[name].includes)))

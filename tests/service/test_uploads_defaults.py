@@ -10,7 +10,8 @@ import pytest
 
 from schemas.errors import InvalidJob
 from schemas.job import XmlScene
-from services.uploads.scene import UploadLimits, pack_scene
+from services.uploads.pack import pack_scene
+from services.uploads.scene import UploadLimits
 from services.uploads.staging import stage_scene
 
 TEXTURED = """<scene version="3.0.0">

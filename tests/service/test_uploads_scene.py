@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from services.uploads.pack import pack_scene
 from services.uploads.scene import (
     MAX_INCLUDE_EXPANSIONS,
     InvalidJob,
     UploadLimits,
     check_scene_upload,
-    pack_scene,
     scene_references,
 )
 
