@@ -248,6 +248,7 @@ export function jobView(root, jobId) {
     if (warmup.hidden) return;
     if (event.preparing) {              // before the first iteration: scene, effect probe, targets
       warmupBar.style.width = "0%";
+      warmupText.dataset.steps = "0";   // no training step yet
       warmupText.textContent = `Preparing: ${event.preparing}`;
       return;
     }
