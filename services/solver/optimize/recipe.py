@@ -21,8 +21,9 @@ What the rules rest on (``bench/results/mitsuba-loop.md``, ``bench/results/regim
   1 - :data:`CLOSED` of the light reflected leaves the scene** (``closure``, measured by
   :func:`services.solver.scene.closure.closure`), by 3/2 otherwise: an image's response to an
   albedo curves like ``a / (1 - a c)``, and Gauss-Newton's linear model holds over long steps
-  only where ``c`` is small (3 seeds each: the open room reached max error 0.02 at iteration 4, 7,
-  4 with 2 against 5, 7, 5 with 3/2; the closed room at 24, 10, 14 against 7, 13, 12).
+  only where ``c`` is small (``python -m bench.trust_growth``, 3 seeds each: the open room
+  reached max error 0.02 at iteration 4, 7, 4 with 2 against 5, 7, 5 with 3/2; the closed room at
+  24, 10, 14 against 7, 13, 12).
 * **One view per iteration at 1 spp**, the batch doubled by the run itself when the steps keep
   reversing (noise-dominated): views while there are more, then samples per
   pixel; kept as it is under Adam, whose moments average the noise.

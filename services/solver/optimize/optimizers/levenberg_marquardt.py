@@ -46,7 +46,7 @@ from services.solver.optimize.optimizers.gauss_newton import damped_step, free_s
 
 #: The first radius and the largest, in units of ``lr_0``, and the default growth on agreeing capped
 #: steps. The first is Adam's first step. A faster start (2x, or growth 2) reaches the open room's
-#: answer one or two steps sooner and overshoots in the bright closed room (3 seeds each: growth 2
+#: answer one or two steps sooner and overshoots in the bright closed room (bench.trust_growth: growth 2
 #: reached 0.02 there at iterations 24, 10, 14 against 7, 13, 12), which is why the growth is the recipe's.
 INITIAL, GROW, RADIUS_CAP = 1.0, 1.5, 20.0
 #: Cosine between consecutive steps above which they agree.
