@@ -125,3 +125,13 @@ def test_merged_channels_carry_the_same_gradient(mi):
         assert np.abs(full[p][..., others]).max() < 0.1 * np.abs(full[p][..., p]).max()
         relative = np.linalg.norm(merged[p][..., p] - full[p][..., p]) / np.linalg.norm(full[p][..., p])
         assert relative < 0.25, relative
+
+
+def test_direct_reach_tells_a_hidden_scalar_from_one_the_camera_sees(mi):
+    from services.solver.scene.facts import direct_reach
+    from services.solver.scene.load import load_scene
+    from services.solver.scene.params import ParameterSet
+
+    scene = load_scene(builtin="hidden-object", resolution=(32, 32))
+    parameters = ParameterSet(scene.params, ["hidden.reflectance.value", "walls.reflectance.value"])
+    assert direct_reach(scene, parameters, probe_rays=1024) == [False] * 3 + [True] * 3

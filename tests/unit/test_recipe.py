@@ -9,7 +9,8 @@ import pytest
 
 from schemas.job import JobSpec
 from services.solver.estimators.layout import DerivativeLayout
-from services.solver.optimize.recipe import MAX_GROWTH, MAX_JACOBIAN_RENDERS, choose_recipe, grow_batch
+from services.solver.optimize.recipe import INDIRECT_SPP, MAX_GROWTH, MAX_JACOBIAN_RENDERS, choose_recipe, grow_batch
+from services.solver.scene.planner import ScalarPlan
 
 
 def _spec(**extra) -> JobSpec:
@@ -19,8 +20,10 @@ def _spec(**extra) -> JobSpec:
     return JobSpec.model_validate({**job, **extra})
 
 
-def _problem(sizes):
-    return SimpleNamespace(layout=DerivativeLayout.by_component(sizes),
+def _problem(sizes, first_bounces=None):
+    plan = None if first_bounces is None else SimpleNamespace(scalars=[
+        ScalarPlan(f"s{i}", bounce is not None, (0, 1, 2), "", bounce) for i, bounce in enumerate(first_bounces)])
+    return SimpleNamespace(layout=DerivativeLayout.by_component(sizes), plan=plan,
                            parameters=SimpleNamespace(has_textures=False, n=sum(sizes)))
 
 
@@ -88,3 +91,23 @@ def test_the_trust_region_grows_faster_where_light_leaves_the_scene():
     assert opened.to_json()["trust_growth"] == OPEN_GROWTH
     adam = choose_recipe(_spec(optimizer="adam"), _problem([3, 3]), sensors=8, closure=measured(0.1))
     assert asked == [0.85, CLOSED] and adam.trust_growth == CLOSED_GROWTH   # measured only for Levenberg-Marquardt
+
+
+def test_scalars_seen_only_through_interreflection_start_at_more_samples():
+    hidden = choose_recipe(_spec(), _problem([3], first_bounces=[1, 2, 1]), sensors=1)
+    assert (hidden.spp, hidden.gradient_spp, hidden.first_size) == (INDIRECT_SPP, INDIRECT_SPP, INDIRECT_SPP)
+    assert "seen directly" in {d.what: d for d in hidden.decisions}["spp"].reason
+    grown = [grow_batch(hidden, 1, k) for k in range(6)]
+    assert [d.value for d in grown if d is not None] == [2 * INDIRECT_SPP, 4 * INDIRECT_SPP, 8 * INDIRECT_SPP,
+                                                        16 * INDIRECT_SPP]  # the growth is relative to the first
+    seen = choose_recipe(_spec(), _problem([3], first_bounces=[0, 1, None]), sensors=1)   # one seen directly
+    assert seen.spp == 1
+    unset = choose_recipe(_spec(), _problem([3]), sensors=1)                              # nothing measured
+    assert unset.spp == 1
+    measured = choose_recipe(_spec(), _problem([3]), sensors=1, direct=lambda: [False] * 3)   # prb: no plan
+    assert measured.spp == INDIRECT_SPP
+    assert choose_recipe(_spec(), _problem([3]), sensors=1, direct=lambda: [False, True, False]).spp == 1
+    own = choose_recipe(_spec(render={"spp": 2}), _problem([3], first_bounces=[1, 1, 1]), sensors=1)
+    assert own.spp == 2                                                                   # the job's own choice
+    other = choose_recipe(_spec(method="ndrf-lhs"), _problem([3], first_bounces=[1, 1, 1]), sensors=1)
+    assert other.spp == 1                                                                 # measured for prb only

@@ -46,6 +46,7 @@ from services.solver.optimize.setup import Prepared, prepare
 from services.solver.optimize.textures import TextureReport, record_fields
 from services.solver.optimize.views import ViewStream
 from services.solver.scene.closure import closure
+from services.solver.scene.facts import direct_reach
 from services.solver.seeds import derive_seed
 from services.solver.training.trainer import FieldTrainer, fields_of
 
@@ -137,7 +138,9 @@ class InverseRenderingRun:
                                on_phase=lambda what: self.reporter.progress("preparing", {"what": what}))
             self.listed = prepared.textures
             recipe = choose_recipe(self.spec, prepared.problem, len(prepared.targets),
-                                   closure=lambda: closure(prepared.problem.scene, seed=self.spec.seed))
+                                   closure=lambda: closure(prepared.problem.scene, seed=self.spec.seed),
+                                   direct=lambda: direct_reach(prepared.problem.scene, prepared.problem.parameters,
+                                                               seed=self.spec.seed))
             self.method_name = recipe.method
             built = build(prepared, recipe.method, recipe.jacobian)
             trainer = built.trainer

@@ -107,6 +107,24 @@ def probe_scene(scene: LoadedScene, parameters: ParameterSet, *, probe_rays: int
         start: Float = 0.0
         camera_rays, _ = scene.sensor(0).sample_ray(start, WAVELENGTH_SAMPLE, sampler.next_2d(), mi.Point2f(0.5))
         lengths.append(_delta_lengths(mi_scene, camera_rays, sampler, max_delta_depth, mi.Bool(True)))
+    magnitude, first = _camera_reach(mi_scene, samples, sampler, parameters, probe_depth, max_delta_depth)
+    counts = np.bincount(np.concatenate(lengths), minlength=max_delta_depth + 2) if lengths else np.zeros(1, int)
+    return SceneFacts(
+        shapes=len(shapes), emitters=len(mi_scene.emitters()), residual_shapes=len(residual_shapes(mi_scene)),
+        delta_shapes=delta, probe_rays=probe_rays, interreflection_hits=hits,
+        delta_chain_counts=[int(c) for c in counts[:max_delta_depth + 1]],
+        delta_unfinished=int(counts[max_delta_depth + 1:].sum()), probe_depth=probe_depth,
+        scalars=[ScalarFacts(label, info_owner, (float(magnitude[i, 0]), float(magnitude[i, 1]), float(magnitude[i, 2])),
+                             first[i])
+                 for i, (label, info_owner) in enumerate(_owners(parameters))],
+    )
+
+
+def _camera_reach(mi_scene: mi.Scene, samples, sampler: mi.Sampler, parameters: ParameterSet, probe_depth: int,
+                  max_delta_depth: int) -> tuple[np.ndarray, list[int | None]]:
+    """Follow the camera paths of ``samples`` for ``probe_depth`` bounces with forward-mode
+    derivatives: the largest |derivative| of each scalar per RGB channel ``(P, 3)``, and the
+    bounce where each first changed a path (0: at the camera hit's own light)."""
     magnitude = np.zeros((parameters.n, 3))
     first: list[int | None] = [None] * parameters.n
     si = samples.chain.si
@@ -129,16 +147,22 @@ def probe_scene(scene: LoadedScene, parameters: ParameterSet, *, probe_rays: int
             si, active = inc.hit, inc.hit_surface
             sampler.schedule_state()
             dr.eval(si, active)                    # one bounce per kernel
-    counts = np.bincount(np.concatenate(lengths), minlength=max_delta_depth + 2) if lengths else np.zeros(1, int)
-    return SceneFacts(
-        shapes=len(shapes), emitters=len(mi_scene.emitters()), residual_shapes=len(residual_shapes(mi_scene)),
-        delta_shapes=delta, probe_rays=probe_rays, interreflection_hits=hits,
-        delta_chain_counts=[int(c) for c in counts[:max_delta_depth + 1]],
-        delta_unfinished=int(counts[max_delta_depth + 1:].sum()), probe_depth=probe_depth,
-        scalars=[ScalarFacts(label, info_owner, (float(magnitude[i, 0]), float(magnitude[i, 1]), float(magnitude[i, 2])),
-                             first[i])
-                 for i, (label, info_owner) in enumerate(_owners(parameters))],
-    )
+    return magnitude, first
+
+
+def direct_reach(scene: LoadedScene, parameters: ParameterSet, *, probe_rays: int = 1 << 12, max_delta_depth: int = 8,
+                 seed: int = 0) -> list[bool]:
+    """Per optimized scalar: does it change the light leaving the first camera hits directly
+    (a BSDF there, seen through at most ``max_delta_depth`` mirrors, or an emitter seen or lighting
+    them)? False for a scalar that reaches the image only after a bounce off another surface (the
+    hidden object of the paper's Fig. 5). One bounce of :func:`probe_scene`'s camera probe,
+    ``probe_rays`` rays of the first sensor, at the parameters' current values."""
+    width, height = scene.resolution()
+    spp = max(1, probe_rays // max(1, width * height))
+    samples, sampler = sample_camera(scene.scene, scene.sensor(0), spp, derive_seed(seed, "probe", "direct"),
+                                     max_delta_depth)
+    _, first = _camera_reach(scene.scene, samples, sampler, parameters, 1, max_delta_depth)
+    return [f == 0 for f in first]
 
 
 def _owners(parameters: ParameterSet):

@@ -39,6 +39,9 @@ class ScalarPlan:
     active: bool
     channels: tuple[int, ...]
     reason: str
+    #: Bounces from the camera hit to the first vertex where the scalar changed a probed path
+    #: (0: seen directly; None: not reached or not probed).
+    first_bounce: int | None = None
 
 
 @dataclass(frozen=True)
@@ -97,14 +100,15 @@ def plan_effects(facts: SceneFacts, method: str, uses: Collection[str], override
         reached = max(s.channel_magnitude) > 0
         if not reached and overrides.drop_unreachable:
             scalars.append(ScalarPlan(s.label, False, (), f"no camera path of up to {facts.probe_depth + 1} bounces "
-                                                          f"depends on it: its gradient is zero"))
+                                                          f"depends on it: its gradient is zero", s.first_bounce))
             continue
         channels = tuple(c for c in range(3) if s.channel_magnitude[c] > 0) if overrides.merge_channels and reached \
             else (0, 1, 2)
         where = "seen directly" if s.first_bounce == 0 else (
             f"first reaches the image after {s.first_bounce} bounce(s)" if s.first_bounce is not None else "not probed")
         scalars.append(ScalarPlan(s.label, True, channels, f"{s.owner} parameter, {where}; "
-                                                           f"changes channel(s) {', '.join('RGB'[c] for c in channels)}"))
+                                                           f"changes channel(s) {', '.join('RGB'[c] for c in channels)}",
+                                  s.first_bounce))
     active = [s for s, p in zip(facts.scalars, scalars) if p.active]
     if facts.scalars and not active:
         warnings.append("no optimized scalar can change the image: every gradient is zero")
