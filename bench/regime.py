@@ -9,8 +9,9 @@ files included) with the changes of :data:`VARIANTS`. ``default`` is the job wit
 parameters, targets and iterations: what a user gets without tuning anything.
 
 Clock. Scene loading and target rendering are outside it for everyone. The loop's clock starts at
-its first iteration. The product's adds the seconds ``prepare`` spent deciding (the effect probe
-and the depth check, ``plan.json``'s ``prepared_seconds.plan``) to the time from the plan report
+its first iteration. The product's adds the seconds spent deciding (the effect probe and the depth
+check, ``plan.json``'s ``prepared_seconds.plan``, and the recipe's own measurements of the scene,
+``prepared_seconds.recipe``) to the time from the plan report
 to each iteration's record, so writing targets and records counts against it. Every row runs once
 untimed for two iterations first, so that no row pays Dr.Jit's kernel compilation and another
 not. Reported: seconds per iteration (median), when the largest parameter error first falls below
@@ -85,7 +86,7 @@ def run_product(job: dict, target_error: float, budget: float | None = None, ite
         summary = run_local(JobSpec.model_validate(job), Path(tmp) / "job", on_event=on_event, should_stop=stop)
         plan = json.loads((Path(tmp) / "job" / "plan.json").read_text())
     planned = next(t for t, e in events if e["type"] == "plan")
-    decided = plan["prepared_seconds"]["plan"]
+    decided = plan["prepared_seconds"]["plan"] + plan["prepared_seconds"].get("recipe", 0.0)
     curve = [{"iteration": e["iteration"], "seconds": decided + t - planned, "error": e["parameter_error"],
               "views": e["views"]} for t, e in events if e["type"] == "iteration"]
     reached = next((c for c in curve if c["error"] < target_error), None)

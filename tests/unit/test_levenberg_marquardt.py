@@ -66,6 +66,9 @@ def test_the_radius_rule():
     q = fast.step(np.array([0.5, 0.5]), np.array([-5.0, 0.0]), lo, hi, lr=0.1, hessian=h)
     fast.step(q, np.array([-5.0, 0.0]), lo, hi, lr=0.1, hessian=h)
     assert fast.radius == pytest.approx(0.2)
+    far = LevenbergMarquardt(2, 0.1, 0.0, start=4.0)                      # an open scene's first step
+    first = far.step(np.array([0.5, 0.5]), np.array([-5.0, 0.0]), lo, hi, lr=0.1, hessian=h) - 0.5
+    assert np.max(np.abs(first)) == pytest.approx(0.4)                   # 4 lr_0, where 1 lr_0 would be 0.1
 
 
 def valley_model(coupling: float, seed: int = 0):
@@ -118,6 +121,8 @@ def test_state_round_trip_and_argument_ranges():
         LevenbergMarquardt(3, 0.05, -1.0)
     with pytest.raises(ValueError, match=r"growth must be in \(1, 4\], got 1.0"):
         LevenbergMarquardt(3, 0.05, 1e-3, grow=1.0)
+    with pytest.raises(ValueError, match=r"start must be in \[1, 20\] learning rates, got 0.5"):
+        LevenbergMarquardt(3, 0.05, 1e-3, start=0.5)
     with pytest.raises(ValueError, match="curvature"):
         a.step(np.zeros(3), np.zeros(3), LOWER, UPPER, lr=0.05)
     with pytest.raises(ValueError, match="unknown optimizer"):

@@ -33,8 +33,9 @@ def test_the_default_job_gets_prb_levenberg_marquardt_and_one_view_with_reasons(
         "prb", "levenberg-marquardt", "method", 1, 1)
     assert recipe.adaptive_views and recipe.depth.unbiased
     said = {d.what: d for d in recipe.decisions}
-    assert set(said) == {"method", "optimizer", "views", "spp", "depth", "trust_growth"}
+    assert set(said) == {"method", "optimizer", "views", "spp", "depth", "trust_growth", "trust_start"}
     assert recipe.trust_growth == 1.5 and "not measured" in said["trust_growth"].reason
+    assert recipe.trust_start == 1.0 and "not measured" in said["trust_start"].reason
     assert "2 forward render(s) per view" in said["optimizer"].reason           # 6 scalars, 2 channel groups
     assert all(d.iteration is None and d.reason for d in recipe.decisions)     # decided before iteration 0
     assert recipe.to_json()["decisions"][0]["what"] == "method"
@@ -77,7 +78,7 @@ def test_a_truncated_depth_is_said_and_no_roulette_needs_a_depth():
 
 
 def test_the_trust_region_grows_faster_where_light_leaves_the_scene():
-    from services.solver.optimize.recipe import CLOSED, CLOSED_GROWTH, OPEN_GROWTH
+    from services.solver.optimize.recipe import CLOSED, CLOSED_GROWTH, CLOSED_START, OPEN_GROWTH, OPEN_START
 
     asked = []
 
@@ -87,8 +88,10 @@ def test_the_trust_region_grows_faster_where_light_leaves_the_scene():
     opened = choose_recipe(_spec(), _problem([3, 3]), sensors=8, closure=measured(0.85))
     closed = choose_recipe(_spec(), _problem([3, 3]), sensors=8, closure=measured(CLOSED))
     assert (opened.trust_growth, closed.trust_growth) == (OPEN_GROWTH, CLOSED_GROWTH)
-    assert "85% of the light" in opened.decisions[-3].reason and "closed scene" in closed.decisions[-3].reason
-    assert opened.to_json()["trust_growth"] == OPEN_GROWTH
+    assert (opened.trust_start, closed.trust_start) == (OPEN_START, CLOSED_START) and OPEN_START > CLOSED_START
+    said = [{d.what: d for d in r.decisions} for r in (opened, closed)]
+    assert "85% of the light" in said[0]["trust_growth"].reason and "closed scene" in said[1]["trust_growth"].reason
+    assert opened.to_json()["trust_growth"] == OPEN_GROWTH and opened.to_json()["trust_start"] == OPEN_START
     adam = choose_recipe(_spec(optimizer="adam"), _problem([3, 3]), sensors=8, closure=measured(0.1))
     assert asked == [0.85, CLOSED] and adam.trust_growth == CLOSED_GROWTH   # measured only for Levenberg-Marquardt
 

@@ -137,10 +137,12 @@ class InverseRenderingRun:
             prepared = prepare(self.spec, scene_file=self.scene_file,
                                on_phase=lambda what: self.reporter.progress("preparing", {"what": what}))
             self.listed = prepared.textures
+            decided = time.perf_counter()
             recipe = choose_recipe(self.spec, prepared.problem, len(prepared.targets),
                                    closure=lambda: closure(prepared.problem.scene, seed=self.spec.seed),
                                    direct=lambda: direct_reach(prepared.problem.scene, prepared.problem.parameters,
                                                                seed=self.spec.seed))
+            prepared.seconds["recipe"] = time.perf_counter() - decided   # its measurements (closure, reach)
             self.method_name = recipe.method
             built = build(prepared, recipe.method, recipe.jacobian)
             trainer = built.trainer
@@ -191,7 +193,8 @@ class InverseRenderingRun:
     def _initial_state(self, prepared: Prepared, recipe: Recipe, trainer: FieldTrainer | None) -> RunState:
         spec = self.spec
         optimizer = make_optimizer(recipe.optimizer, prepared.problem.parameters.n, lr=spec.learning_rate,
-                                   betas=spec.adam_betas, damping=spec.damping, trust_growth=recipe.trust_growth)
+                                   betas=spec.adam_betas, damping=spec.damping, trust_growth=recipe.trust_growth,
+                                   trust_start=recipe.trust_start)
         state = RunState(0, prepared.init.copy(), optimizer)
         if self.resume is not None:
             saved = checkpoint.loads(self.resume, spec)

@@ -17,13 +17,12 @@ What the rules rest on (``bench/results/mitsuba-loop.md``, ``bench/results/regim
   learning rate per step, when its Jacobian is cheap: a forward-mode render per group of
   scalars that change distinct RGB channels. ``auto`` takes it when the loss is ``l2`` and
   at most :data:`MAX_JACOBIAN_RENDERS` renders per view measure the Jacobian; otherwise Adam.
-* **Levenberg-Marquardt's trust region grows by 2 on agreeing steps where at least
-  1 - :data:`CLOSED` of the light reflected leaves the scene** (``closure``, measured by
-  :func:`services.solver.scene.closure.closure`), by 3/2 otherwise: an image's response to an
-  albedo curves like ``a / (1 - a c)``, and Gauss-Newton's linear model holds over long steps
-  only where ``c`` is small (``python -m bench.trust_growth``, 3 seeds each: the open room
-  reached max error 0.02 at iteration 4, 7, 4 with 2 against 5, 7, 5 with 3/2; the closed room at
-  24, 10, 14 against 7, 13, 12).
+* **Levenberg-Marquardt's trust region starts at 4 learning rates and grows by 2 on agreeing
+  steps where at least 1 - :data:`CLOSED` of the light reflected leaves the scene** (``closure``,
+  measured by :func:`services.solver.scene.closure.closure`); otherwise it starts at one and grows
+  by 3/2: an image's response to an albedo curves like ``a / (1 - a c)``, and Gauss-Newton's
+  linear model holds over long steps only where ``c`` is small (``python -m bench.trust_growth``,
+  3 seeds each, iterations to max error 0.02: ``bench/results/trust_growth.md``).
 * **One view per iteration at 1 spp**, the batch doubled by the run itself when the steps keep
   reversing (noise-dominated): views while there are more, then samples per
   pixel; kept as it is under Adam, whose moments average the noise.
@@ -57,6 +56,8 @@ MAX_GROWTH = 16
 CLOSED = 0.95
 #: Levenberg-Marquardt's trust-radius growth in an open scene and in a closed one.
 OPEN_GROWTH, CLOSED_GROWTH = 2.0, 1.5
+#: Its first radius, in learning rates, in an open scene and in a closed one.
+OPEN_START, CLOSED_START = 4.0, 1.0
 #: Samples per pixel of a texture job whose job leaves them unset (:func:`texture_batch`).
 TEXTURE_SPP = 16
 #: Samples per pixel of ``prb``'s first batch when no optimized scalar is seen directly
@@ -84,6 +85,7 @@ class Recipe:
     gradient_spp: int          # samples per pixel of the gradient and the Jacobian now
     first_size: int = 1        # views x gradient spp of the first batch
     trust_growth: float = CLOSED_GROWTH  # Levenberg-Marquardt's trust-radius growth
+    trust_start: float = CLOSED_START    # and its first radius, in learning rates
     decisions: list[Decision] = field(default_factory=list)
 
     def decide(self, what: str, value, reason: str, iteration: int | None = None) -> Decision:
@@ -94,7 +96,7 @@ class Recipe:
     def to_json(self) -> dict:
         return {"method": self.method, "optimizer": self.optimizer, "jacobian": self.jacobian, "views": self.views,
                 "spp": self.spp, "gradient_spp": self.gradient_spp, "adaptive_views": self.adaptive_views,
-                "depth": self.depth.describe(), "trust_growth": self.trust_growth,
+                "depth": self.depth.describe(), "trust_growth": self.trust_growth, "trust_start": self.trust_start,
                 "decisions": [asdict(d) for d in self.decisions]}
 
 
@@ -192,16 +194,21 @@ def _trust_growth(recipe: Recipe, measure: Callable[[], float | None] | None) ->
     if closure is None:
         why = "the scene's closure was not measured" if measure is None else "no reflecting surface to measure it on"
         recipe.decide("trust_growth", CLOSED_GROWTH, f"{why}: the cautious growth of the trust region (3/2)")
+        recipe.decide("trust_start", CLOSED_START, f"{why}: the cautious first step, one learning rate (Adam's)")
         return
     share = f"{closure:.0%} of the light a surface reflects hits another surface"
     if closure < CLOSED:
-        recipe.trust_growth = OPEN_GROWTH
+        recipe.trust_growth, recipe.trust_start = OPEN_GROWTH, OPEN_START
         recipe.decide("trust_growth", OPEN_GROWTH, f"{share}: the images are close to linear in the scalars, and "
                                                    f"the trust region doubles on steps that agree")
+        recipe.decide("trust_start", OPEN_START, f"the same linearity: the first step may be {OPEN_START:g} learning "
+                                                 f"rates long")
     else:
-        recipe.trust_growth = CLOSED_GROWTH
+        recipe.trust_growth, recipe.trust_start = CLOSED_GROWTH, CLOSED_START
         recipe.decide("trust_growth", CLOSED_GROWTH, f"{share} (a closed scene): the images curve strongly in the "
                                                      f"albedos, and the trust region grows by 3/2 on steps that agree")
+        recipe.decide("trust_start", CLOSED_START, "the same curvature: the first step is one learning rate long "
+                                                   "(Adam's)")
 
 
 def texture_batch(spec: JobSpec, recipe: Recipe, sensors: int) -> None:

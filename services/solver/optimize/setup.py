@@ -49,7 +49,8 @@ class Prepared:
     ``depths`` describes the path depths of the synthetic target (``target``) and of the
     path-traced candidate and ``prb`` (``render``, which is ``depth``), with any warning;
     ``seconds`` what preparing took: ``load`` (scene and checks), ``plan`` (the effect probe and
-    the depth check: decisions), ``targets`` (rendering synthetic targets)."""
+    the depth check: decisions), ``targets`` (rendering synthetic targets); the loop adds
+    ``recipe`` (the recipe's measurements of the scene: closure, direct reach)."""
 
     spec: JobSpec
     problem: Problem

@@ -12,13 +12,14 @@ OPTIMIZERS = (Adam.name, LevenbergMarquardt.name, GaussNewton.name)
 
 
 def make_optimizer(name: str, size: int, *, lr: float, betas: tuple[float, float], damping: float,
-                   trust_growth: float = 1.5) -> ParameterOptimizer:
+                   trust_growth: float = 1.5, trust_start: float = 1.0) -> ParameterOptimizer:
     """The optimizer ``name`` for ``size`` scalars (``lr``: the initial learning rate;
-    ``trust_growth``: Levenberg-Marquardt's growth of the trust radius, the recipe's)."""
+    ``trust_growth``, ``trust_start``: Levenberg-Marquardt's growth of the trust radius and its
+    first value in learning rates, the recipe's)."""
     if name == Adam.name:
         return Adam(size, lr, *betas)
     if name == LevenbergMarquardt.name:
-        return LevenbergMarquardt(size, lr, damping, trust_growth)
+        return LevenbergMarquardt(size, lr, damping, trust_growth, trust_start)
     if name == GaussNewton.name:
         return GaussNewton(damping)
     raise ValueError(f"unknown optimizer {name!r}; known: {', '.join(OPTIMIZERS)}")

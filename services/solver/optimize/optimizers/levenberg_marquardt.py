@@ -8,12 +8,13 @@ learning rate ``lr_k`` (the job's schedule)::
     r_k  = r_{k-1} / 2        if c_k < 0                          (the step reversed)
            r_{k-1} · γ        if c_k > 1/2 and Δ_{k-1} was capped  (it keeps going the same way)
            r_{k-1}            otherwise
-    r_k  = clip(r_k, lr_k, 20 · lr_0),        r_0 = lr_0
+    r_k  = clip(r_k, lr_k, 20 · lr_0),        r_0 = s · lr_0
     Δ'   = Δ_k · min(1, r_k / max|Δ_k|)
     p_{k+1} = p_k + clip(Δ', -τ (p_k - lower), τ (upper - p_k)),        τ = 1/2
 
-The growth ``γ`` (``grow``, 3/2 by default) is the recipe's: 2 where most light leaves the scene
-and the image is close to linear in the scalars (:mod:`services.solver.scene.closure`).
+The growth ``γ`` (``grow``, 3/2 by default) and the start ``s`` (``start``, 1 by default: the first
+step is Adam's) are the recipe's: ``γ = 2`` and ``s = 4`` where most light leaves the scene and
+the image is close to linear in the scalars (:mod:`services.solver.scene.closure`).
 
 The last line is the fraction-to-the-boundary rule of interior-point methods: a step covers at
 most half the way to a bound. Gauss-Newton's linear model overshoots where the image grows faster
@@ -44,10 +45,10 @@ import numpy as np
 from services.solver.optimize.optimizers.base import ParameterOptimizer
 from services.solver.optimize.optimizers.gauss_newton import damped_step, free_scalars
 
-#: The first radius and the largest, in units of ``lr_0``, and the default growth on agreeing capped
-#: steps. The first is Adam's first step. A faster start (2x, or growth 2) reaches the open room's
-#: answer one or two steps sooner and overshoots in the bright closed room (bench.trust_growth: growth 2
-#: reached 0.02 there at iterations 24, 10, 14 against 7, 13, 12), which is why the growth is the recipe's.
+#: The default first radius and the largest, in units of ``lr_0``, and the default growth on agreeing
+#: capped steps. The default first radius is Adam's first step. A faster start (4x, or growth 2)
+#: reaches the open room's answer a step or two sooner and overshoots in the bright closed room
+#: (``python -m bench.trust_growth``), which is why both are the recipe's.
 INITIAL, GROW, RADIUS_CAP = 1.0, 1.5, 20.0
 #: Cosine between consecutive steps above which they agree.
 AGREE = 0.5
@@ -63,15 +64,17 @@ class LevenbergMarquardt(ParameterOptimizer):
     name = "levenberg-marquardt"
     needs_curvature = True
 
-    def __init__(self, size: int, lr: float, damping: float, grow: float = GROW):
+    def __init__(self, size: int, lr: float, damping: float, grow: float = GROW, start: float = INITIAL):
         if not lr > 0:
             raise ValueError(f"learning rate must be > 0, got {lr}")
         if damping < 0:
             raise ValueError(f"damping must be >= 0, got {damping}")
         if not 1 < grow <= 4:
             raise ValueError(f"trust-region growth must be in (1, 4], got {grow}")
+        if not 1 <= start <= RADIUS_CAP:
+            raise ValueError(f"trust-region start must be in [1, {RADIUS_CAP:g}] learning rates, got {start}")
         self.lr0, self.damping, self.grow = lr, damping, grow
-        self.radius = INITIAL * lr
+        self.radius = start * lr
         self.previous = np.zeros(size)
         self.capped = False
         self.reversals = 0.0
