@@ -75,17 +75,18 @@ class FieldTrainer:
         self.steps = 0
         lo, hi = problem.bbox
         #: dL_theta is the many-parameter head (``training.head``; services.solver.training.head)
-        self.head = differential and config.head is not None
-        if differential and not self.head and problem.layout.outputs == 0:
+        head = differential and config.head is not None
+        if differential and not head and problem.layout.outputs == 0:
             raise ValueError("dL_theta has no output: no active scalar (see the effect plan)")
         # each field is initialised from its own seed: training one does not change the other
         self.radiance = self._field(config.radiance, 3, lo, hi, "radiance") if radiance else None
-        self.differential: NeuralField | ParameterHead | None = None
-        if self.head:
+        self.differential: NeuralField | None = None
+        self.head: ParameterHead | None = None  # dL_theta as the many-parameter head, in place of differential
+        if head:
             assert config.head is not None
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(derive_seed(self.seed, "init", "differential"))
-                self.differential = ParameterHead(config.differential, config.head.rank, problem.parameters.n, lo, hi)
+                self.head = ParameterHead(config.differential, config.head.rank, problem.parameters.n, lo, hi)
         elif differential:
             self.differential = self._field(config.differential, problem.layout.outputs, lo, hi, "differential")
         self._head_batch: HeadBatch | None = None
@@ -102,8 +103,8 @@ class FieldTrainer:
         if config.pool.enabled:
             self.pool = ResidualPool(problem, config.residual_points, config.incident_samples,
                                      chunks=config.pool.chunks, reuse=config.pool.reuse,
-                                     derivatives=self.differential is not None and not self.head,
-                                     fields=list(self.fields().values()),
+                                     derivatives=self.differential is not None,
+                                     fields=[f for f in self.fields().values() if isinstance(f, NeuralField)],
                                      seed=seed, camera_fraction=config.camera_points)
 
     def _field(self, config, channels: int, lo, hi, name: str) -> NeuralField:
@@ -113,15 +114,19 @@ class FieldTrainer:
 
     def fields(self) -> dict[str, NeuralField | ParameterHead]:
         """The fields being trained (live weights)."""
-        return {name: f for name, f in (("radiance", self.radiance), ("differential", self.differential)) if f is not None}
+        pairs = (("radiance", self.radiance), ("differential", self.differential if self.head is None else self.head))
+        return {name: f for name, f in pairs if f is not None}
 
     def queried(self) -> Fields:
         """The fields that gradients and images read: the weight averages (``weight_averaging``)
         or, without them, the live fields."""
         if not self.averages:
-            return Fields(self.radiance, self.differential)
+            return Fields(self.radiance, self.differential, self.head)
         pick = {name: average.average for name, average in self.averages.items()}
-        return Fields(pick.get("radiance"), pick.get("differential"))
+        radiance, differential = pick.get("radiance"), pick.get("differential")
+        return Fields(radiance if isinstance(radiance, NeuralField) else None,
+                      differential if isinstance(differential, NeuralField) else None,
+                      differential if isinstance(differential, ParameterHead) else None)
 
     def _update_averages(self) -> None:
         if self.averages:
@@ -193,7 +198,7 @@ class FieldTrainer:
             radiance_step = self._step_field("radiance", self.radiance, lambda b: self.radiance(b.points),
                                              lambda b: radiance_rhs_samples(b, self.radiance), batch)
         middle = time.perf_counter()
-        if self.head:
+        if self.head is not None:
             differential = self._head_step()
         elif self.differential is not None:
             batch = self._batch(1, derivatives=True)
@@ -217,7 +222,7 @@ class FieldTrainer:
         start = time.perf_counter()
         batch = self.pool.batch(self.steps)
         layout, radiance = self.problem.layout, self.radiance
-        differential = None if self.head else self.differential
+        differential = self.differential
         if radiance is not None and not self.calibrated["radiance"]:
             self._calibrate("radiance", radiance, batch.emitted.mean(1))
         if differential is not None and not self.calibrated["differential"]:
@@ -227,13 +232,11 @@ class FieldTrainer:
             l_hit = incident_radiance(batch, radiance) if shared and radiance is not None else None
             dl_hit = incident_radiance(batch, differential) if shared and differential is not None else None
         radiance_step = diff = None
-        if isinstance(differential, ParameterHead):
-            raise AssertionError("the head is trained by _head_step")
         if radiance is not None:
             radiance_step = self._step_field("radiance", radiance, lambda b: radiance(b.points),
                                              lambda b: radiance_rhs_samples(b, radiance, l_hit), batch)
         middle = time.perf_counter()
-        if self.head:
+        if self.head is not None:
             diff = self._head_step()
         elif differential is not None:
             diff = self._step_field(
@@ -251,8 +254,8 @@ class FieldTrainer:
         """One Adam step on the many-parameter head (``services.solver.training.head``): a batch
         with its drawn scalars, redrawn every ``pool.reuse`` steps and whenever the parameters
         changed (its BSDF derivatives were evaluated at the old values)."""
-        head, config = self.differential, self.config
-        assert isinstance(head, ParameterHead) and config.head is not None
+        head, config = self.head, self.config
+        assert head is not None and config.head is not None
         batch = self._head_batch
         if (batch is None or self.steps % config.pool.reuse == 0
                 or not np.array_equal(batch.values, self.problem.parameters.values())):

@@ -36,7 +36,6 @@ from schemas.methods import Method
 from services.solver.estimators.methods.base import DIFFERENTIAL, RADIANCE, Fields, GradientMethod
 from services.solver.estimators.problem import Problem
 from services.solver.fields.field import evaluate
-from services.solver.fields.head import ParameterHead
 from services.solver.sampling.camera import CameraSamples, develop, sample_camera
 from services.solver.sampling.incident import IncidentGeometry, evaluate_attached, evaluate_incident, sample_geometry
 from services.solver.sampling.passes import passes_for
@@ -82,16 +81,17 @@ class NdrfHead(GradientMethod):
         super().__init__(radiance=True, differential=True)
 
     def check(self, fields: Fields) -> None:
-        super().check(fields)
-        if not isinstance(fields.differential, ParameterHead):
-            raise ValueError("ndrf-rhs with training.head needs dL_theta as a ParameterHead")
+        if fields.radiance is None:
+            raise ValueError(f"{self.name} needs a trained radiance field L_phi")
+        if fields.head is None:
+            raise ValueError("ndrf-rhs with training.head needs dL_theta as the many-parameter head")
 
     # ------------------------------------------------------------ camera pass
 
     def trace(self, problem: Problem, fields: Fields, sensor: mi.Sensor, spp: int, seed: int) -> HeadPass:
         """Camera rays, their bounce from ``x`` and from ``x'``, and the fields there."""
-        head = fields.differential
-        assert isinstance(head, ParameterHead) and fields.radiance is not None  # self.check
+        head = fields.head
+        assert head is not None and fields.radiance is not None  # self.check
         scene = problem.scene.scene
         samples, sampler = sample_camera(scene, sensor, spp, seed, problem.delta_depth)
         si = samples.chain.si
@@ -107,7 +107,7 @@ class NdrfHead(GradientMethod):
             query = field_query(first.hit)
             l_first = evaluate(fields.radiance, query, hits)
             l_second = evaluate(fields.radiance, field_query(second.hit), hits2)
-            basis = evaluate(head, query, hits).reshape(-1, head.rank, 3)
+            basis = evaluate(head.basis, query, hits).reshape(-1, head.rank, 3)
         scale = rgb(samples.weight * samples.chain.beta)
         return HeadPass(samples, first, second, scale, l_first, l_second, basis)
 
@@ -136,8 +136,8 @@ class NdrfHead(GradientMethod):
         sensor_obj = problem.scene.sensor(sensor)
         if not sensor_obj.film().rfilter().is_box_filter():
             raise ValueError("ndrf-rhs with training.head contracts dz/dy per ray: it needs a box pixel filter")
-        head = fields.differential
-        assert isinstance(head, ParameterHead)
+        head = fields.head
+        assert head is not None
         params = problem.parameters
         passes, per_pass = passes_for(width * height, spp, RAYS_PER_PASS)
         pixel = torch.from_numpy(np.ascontiguousarray(dz_dy.reshape(-1, 3), dtype=np.float32))
@@ -164,8 +164,8 @@ class NdrfHead(GradientMethod):
         """``dI/dp`` ``(P, H, W, 3)``: one forward-mode pass per scalar plus the head's ``T C_k·B``
         per ray, splatted by the film. P images: for small P (tests, ``ndrf gradient``)."""
         self.check(fields)
-        head = fields.differential
-        assert isinstance(head, ParameterHead)
+        head = fields.head
+        assert head is not None
         params = problem.parameters
         width, height = problem.scene.resolution(sensor)
         sensor_obj = problem.scene.sensor(sensor)
@@ -175,7 +175,7 @@ class NdrfHead(GradientMethod):
             p = self.trace(problem, fields, sensor_obj, per_pass, derive_seed(seed, "camera", k))
             with params.tracking():
                 _, t1 = self._attached(problem, p)
-            rows = forward_grouped(problem, lambda: [self._attached(problem, p)[0]], list(range(params.n)))
+            rows = forward_grouped(problem, lambda p=p: [self._attached(problem, p)[0]], list(range(params.n)))
             d_exact = torch.stack([rgb(row[0]) for row in rows], 1)                          # (K, P, 3)
             with torch.no_grad():
                 d_head = rgb(t1)[:, None, :] * head.combine(p.basis, head.coefficients)      # (K, P, 3)
