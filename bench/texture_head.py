@@ -2,7 +2,7 @@
 interreflection: the built-in ``textured-floor`` (a 16 x 16 albedo, 768 scalars, on a floor that
 its 2 cameras of 32 x 32 never see; they see the walls it lights).
 
-``python -m bench.texture_head gradient [--ref-spp 4096] [--steps 400] [--rank 16]``
+``python -m bench.texture_head gradient [--ref-spp 4096] [--steps 400] [--rank 16] [--points 4096] [--incident 16]``
 ``python -m bench.texture_head race [--seconds 600] [--rank 16]``
 
 ``gradient``: at the initial texture (0.5 grey), ``dz/dp`` of the l2 loss against the targets
@@ -14,9 +14,12 @@ same with the head's coefficients zeroed (the exact local terms alone: what the 
 ``prb`` at the spp whose time matches the head's query. Relative error: ``||g - g_ref|| / ||g_ref||``.
 
 ``race``: the same job recovered by ``prb`` and by ``ndrf-rhs`` with the head (Adam, learning rate
-0.03 decaying 10x, both views per iteration at 16 spp, the texture written every
-``--every`` iterations), each for ``--seconds`` of wall time at most; reported: the texture PSNR
-against the true texture over time and the time to 30 dB (or "never").
+0.03, both views per iteration at 16 spp, the texture written every ``--every`` iterations; the
+head: ``--steps`` warm-up steps, ``--fine-tune`` steps per iteration, ``--points`` x
+``--incident`` samples per step), each for ``--seconds`` of wall time at most (from the plan
+event: target rendering excluded); reported: the texture PSNR against the true texture
+(:func:`~services.solver.scene.textured.smooth_albedo`, peak 1) over time and the time to 30 dB
+(or "never").
 
 Both ran on a shared 2-core machine (other jobs beside them): seconds vary with its load.
 """
@@ -66,7 +69,8 @@ def gradient(args) -> dict:
     from services.solver.optimize.setup import prepare
 
     spec = JobSpec.model_validate(job("ndrf-rhs", args.rank, target_spp=args.target_spp,
-                                      training={"head": {"rank": args.rank}, "warmup_steps": args.steps}))
+                                      training={"head": {"rank": args.rank}, "warmup_steps": args.steps,
+                                                "residual_points": args.points, "incident_samples": args.incident}))
     prepared = prepare(spec)
     problem = prepared.problem
     built = build(prepared, "ndrf-rhs")
@@ -99,7 +103,7 @@ def gradient(args) -> dict:
     rows = [
         {"estimate": f"prb {args.ref_spp} spp, second seed (reference noise x sqrt 2)", "seconds": ref_seconds,
          "relative_error": relative(ref2, ref)},
-        {"estimate": f"ndrf-rhs + head (R={args.rank}, {args.steps} steps), {args.spp} spp", "seconds": head_seconds,
+        {"estimate": f"ndrf-rhs + head, {args.spp} spp", "seconds": head_seconds,
          "relative_error": relative(head, ref)},
         {"estimate": f"ndrf-rhs + head, coefficients zeroed (exact local terms only), {args.spp} spp",
          "seconds": head_seconds, "relative_error": relative(local, ref)},
@@ -124,7 +128,9 @@ def race_one(method: str, args) -> dict:
     extra = {"images_every": args.every, "checkpoint_every": 100000}
     spec = job(method, args.rank, iterations=args.iterations, target_spp=args.target_spp, **extra)
     if method == "ndrf-rhs":
-        spec["training"] = {"head": {"rank": args.rank}, "warmup_steps": args.steps}
+        spec["training"] = {"head": {"rank": args.rank}, "warmup_steps": args.steps,
+                            "steps_per_iteration": args.fine_tune, "residual_points": args.points,
+                            "incident_samples": args.incident}
     with tempfile.TemporaryDirectory() as tmp:
         start: list[float] = []
 
@@ -163,13 +169,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--iterations", type=int, default=400, help="race: most iterations per method")
     parser.add_argument("--every", type=int, default=10, help="race: write the texture every K iterations")
     parser.add_argument("--methods", default="prb,ndrf-rhs")
+    parser.add_argument("--fine-tune", type=int, default=20, help="race: training steps per iteration")
+    parser.add_argument("--points", type=int, default=4096, help="race: residual points per training step")
+    parser.add_argument("--incident", type=int, default=16, help="race: incident samples per residual point")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     out = ROOT / "bench" / "results" / f"texture_head-{args.what}.json"
     if args.what == "gradient":
         result = gradient(args)
         text = (f"dz/dp of {result['scalars']} scalars (a 16 x 16 texture on the hidden floor of {SCENE}) against "
-                f"prb at {result['ref_spp']} spp; the head trained {result['steps']} steps "
+                f"prb at {result['ref_spp']} spp; the head (rank {args.rank}) trained {result['steps']} steps of "
+                f"{args.points} x {args.incident} samples "
                 f"({result['train_seconds']:.0f} s). The head's term is {result['head_share_of_gradient']:.0%} of "
                 f"the norm of its gradient; cosine with the reference {result['cosine']:.3f}. Shared 2-core "
                 f"machine.\n\n")
@@ -179,7 +189,9 @@ def main(argv: list[str] | None = None) -> None:
         rows = [race_one(m, args) for m in args.methods.split(",")]
         result = {"rows": rows, "seconds_limit": args.seconds}
         text = (f"Texture PSNR of {SCENE}'s hidden floor texture (16 x 16, 768 scalars) against time, Adam 0.03, both "
-                f"views at 16 spp per iteration, at most {args.seconds:.0f} s each. Shared 2-core machine.\n\n")
+                f"views at 16 spp per iteration, at most {args.seconds:.0f} s each; the head: rank {args.rank}, "
+                f"{args.steps} warm-up steps, {args.fine_tune} per iteration, {args.points} x {args.incident} "
+                f"samples per step. Shared 2-core machine.\n\n")
         text += markdown_table(
             ["method", "iterations", "30 dB at", "best PSNR (iteration, s)"],
             [[r["method"], r["iterations"],

@@ -6,8 +6,10 @@ The gradient check: a 4 x 4 RGB albedo (48 scalars) on the back wall of the text
 16 x 16 view. The head (rank 4) is trained 150 steps (512 points x 8 incident samples); its
 ``dz/dp`` of ``z = Σ w · y`` (``w`` a fixed random weight image) at 256 spp is compared with
 ``prb``'s (unbounded paths with Russian roulette) at 2048 spp. Tolerance: a relative error
-``||g - g_prb|| / ||g_prb||`` of 0.1; measured 0.035 (prb at 2048 spp against prb at 2048 spp with
-another seed: 0.030, so most of it is the reference's own noise).
+``||g - g_prb|| / ||g_prb||`` of 0.15; measured 0.078, where prb at 2048 spp against prb at 2048 spp
+with another seed is 0.007: the rest is the trained fields' error after 150 small steps (``L_phi``
+enters the exact term ``∂f · L_phi(x')`` too; the two sources were not separated). The test prints
+both numbers (13 minutes on the loaded shared 2-core machine it was measured on).
 """
 
 from __future__ import annotations
@@ -106,7 +108,9 @@ def test_head_gradient_matches_prb(mi):
     head = NdrfHead().loss_gradient(problem, trainer.queried(), w, spp=256, seed=5)
     reference = Prb(depth=UNBIASED).loss_gradient(problem, Fields(), w, spp=2048, seed=7)
     error = np.linalg.norm(head - reference) / np.linalg.norm(reference)
-    assert error < 0.1, error
+    noise = np.linalg.norm(Prb(depth=UNBIASED).loss_gradient(problem, Fields(), w, spp=2048, seed=9) - reference)
+    print(f"head against prb: relative error {error:.4f}; prb against prb {noise / np.linalg.norm(reference):.4f}")
+    assert error < 0.15, error
 
 
 def _job(**changes) -> JobSpec:
