@@ -16,4 +16,7 @@ BUILTIN_SCENES: dict[str, str] = {
     "room-open-8": "The same room without its front wall (light escapes): multi-view, shorter paths.",
     "textured-box": "Cornell box without its blocks whose back wall has a 64x64 albedo texture "
                     "(wall.reflectance.data, 12,288 scalars), seen by 4 cameras of 128x128: texture recovery.",
+    "textured-floor": "The same box whose floor has a 16x16 albedo texture (floor-paint.reflectance.data, 768 "
+                      "scalars), hidden from its 2 cameras of 32x32 that look up at the walls it lights: a texture "
+                      "acting through interreflection.",
 }

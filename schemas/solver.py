@@ -73,6 +73,21 @@ class PoolConfig(BaseModel):
                                    "1/reuse as many independent samples.")
 
 
+class HeadConfig(BaseModel):
+    """The many-parameter head of ``dL_theta`` (paper Sec. 8; ``services/solver/fields/head.py``):
+    ``R`` basis functions ``B_r(x, ω)`` (RGB each) and a learned coefficient matrix ``C`` (R x P)
+    with ``∂L/∂p_k ≈ Σ_r B_r C[r, k]`` for the indirect part of the derivative; the BSDF's own
+    derivative (a texel's local effect) is computed exactly. Its size does not grow with P, so
+    it carries textures. Only ``ndrf-rhs`` uses it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    rank: int = Field(16, ge=1, le=256, description="R: basis functions (each RGB) of the head.")
+    scalars_per_step: int = Field(32, ge=1, le=4096,
+                                  description="S: parameter indices k whose residual a training step takes "
+                                              "(drawn among the scalars the step's secondary hits depend on).")
+
+
 class TrainingConfig(BaseModel):
     """How ``L_phi`` and ``dL_theta`` are trained by their residuals (paper Sec. 4.1, 6.1)."""
 
@@ -136,6 +151,10 @@ class TrainingConfig(BaseModel):
                              description="Maximum number of ideal-specular bounces a ray follows to its first "
                                          "non-delta surface.")
     pool: PoolConfig = Field(default_factory=PoolConfig, description="Reuse of residual batches across steps.")
+    head: HeadConfig | None = Field(None, description="dL_theta as the many-parameter head (R basis functions and "
+                                                      "an R x P coefficient matrix; paper Sec. 8), which lets "
+                                                      "ndrf-rhs carry textures. Null: one output per scalar and "
+                                                      "channel (the default).")
     radiance: FieldConfig = Field(default_factory=FieldConfig, description="The radiance field L_phi.")
     differential: FieldConfig = Field(default_factory=FieldConfig,
                                       description="The differential radiance field dL_theta (one output per active scalar "

@@ -120,7 +120,7 @@ def test_texel_limit_refuses_and_scalar_limit_ignores_textures(mi):
 
 @pytest.mark.parametrize("change, field, reason", [
     ({"method": "ndrf-lhs"}, "method", "dL_theta has three outputs per scalar"),
-    ({"method": "ndrf-rhs"}, "method", "many-parameter head is not built"),
+    ({"method": "ndrf-rhs"}, "method", "set training.head for the many-parameter head"),
     ({"method": "direct"}, "method", "per-scalar derivative images"),
     ({"method": "radiance-cache"}, "method", "per-scalar derivative images"),
     ({"optimizer": "levenberg-marquardt"}, "optimizer", r"P x P curvature \(1.1 GiB\)"),

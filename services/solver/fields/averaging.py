@@ -22,15 +22,14 @@ import copy
 
 import numpy as np
 import torch
-
-from services.solver.fields.field import NeuralField
+from torch import nn
 
 
 class WeightAverage:
     """The averaged copy ``average`` of ``field`` (same class, no gradients), updated by
     :meth:`update` after each optimizer step of ``field``."""
 
-    def __init__(self, field: NeuralField, decay: float):
+    def __init__(self, field: nn.Module, decay: float):
         if not 0.0 <= decay < 1.0:
             raise ValueError(f"the averaging decay β must be in [0, 1), got {decay}")
         self.field = field

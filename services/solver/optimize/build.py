@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 from schemas.methods import Method
 from services.solver.estimators.methods import GradientMethod, make_method
+from services.solver.fields.field import NeuralField
 from services.solver.optimize.setup import Prepared, plan_for
 from services.solver.training.trainer import FieldTrainer, trainer_for
 
@@ -32,6 +33,10 @@ def build(prepared: Prepared, name: str, jacobian: str = "method") -> Built:
     hybrid = jacobian == "differential-field" and name != Method.NDRF_LHS
     plan_for(prepared, str(Method.NDRF_LHS) if hybrid else name, jacobian)
     method = make_method(name, prepared.problem.plan, prepared.depth)
+    if spec.training.head is not None:  # the many-parameter head (checked by setup.check: ndrf-rhs, first order)
+        from services.solver.estimators.methods.head import NdrfHead
+
+        method = NdrfHead()
     render = spec.render
     field_user = make_method(Method.NDRF_LHS, prepared.problem.plan, prepared.depth) if hybrid else method
     trainer = trainer_for(prepared.problem, field_user, spec.training, spec.seed, radiance=render.candidate == "field")
@@ -55,6 +60,6 @@ def _cached(prepared: Prepared, method: GradientMethod, trainer: FieldTrainer | 
     from services.solver.estimators.methods.cached import CachedFirstHits
 
     spec = prepared.spec
-    fields = list(trainer.fields().values()) if trainer is not None else []
+    fields = [f for f in trainer.fields().values() if isinstance(f, NeuralField)] if trainer is not None else []
     cache = FirstHitCache(prepared.problem, sorted(prepared.targets), spec.render.gradient_spp, spec.seed, fields)
     return CachedFirstHits(method, cache, field_candidate=field_candidate, cached_lhs=cached_lhs)

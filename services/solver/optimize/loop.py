@@ -367,7 +367,8 @@ class InverseRenderingRun:
             "recipe": recipe.to_json(),
             "realised_by": type(built.method).__name__,
             "fields": {"radiance": trainer is not None and trainer.radiance is not None,
-                       "differential": trainer is not None and trainer.differential is not None},
+                       "differential": trainer is not None and (trainer.differential is not None
+                                                                or trainer.head is not None)},
             "scalars": textures.labels,
             "keys": problem.parameters.keys,
             "init": textures.scalars(prepared.init),

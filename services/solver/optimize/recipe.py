@@ -134,6 +134,9 @@ def choose_recipe(spec: JobSpec, problem: Problem, sensors: int,
         recipe.decide("optimizer", "adam", f"the {spec.loss} loss has no Gauss-Newton model")
     elif problem.layout.active == 0:
         recipe.decide("optimizer", "adam", "no scalar changes the image: nothing to model")
+    elif spec.training.head is not None:
+        recipe.decide("optimizer", "adam", "training.head (the many-parameter head): a Gauss-Newton step would need "
+                                           "P Jacobian images per view (services.solver.optimize.carry)")
     elif problem.parameters.has_textures:
         recipe.decide("optimizer", "adam", f"a texture's {problem.parameters.n} scalars: a Gauss-Newton step would "
                                            f"solve with a P x P curvature (services.solver.optimize.carry)")

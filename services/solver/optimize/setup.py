@@ -27,7 +27,7 @@ from services.solver.estimators.layout import DerivativeLayout
 from services.solver.estimators.methods import method_class
 from services.solver.estimators.problem import Problem
 from services.solver.estimators.render import UNBIASED, PathDepth, missing_energy, render
-from services.solver.optimize.carry import check_carry
+from services.solver.optimize.carry import check_carry, check_head
 from services.solver.optimize.textures import TextureReport
 from services.solver.scene.facts import SceneFacts, probe_scene
 from services.solver.scene.load import LoadedScene, load_scene
@@ -149,6 +149,7 @@ def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None
     if max_texels is not None and split.texels > max_texels:
         raise InvalidJob("parameters", f"the textures have {split.texels} texels, more than the limit of {max_texels} "
                                        f"(NDRF_MAX_TEXELS)")
+    check_head(spec, [info.owner for info in parameters.infos])
     check_carry(spec, parameters.n, [t.key for t in split.textures])
     scene_values = parameters.values()
 
@@ -211,7 +212,7 @@ def prepare(spec: JobSpec, *, scene_file: Path | None = None, method: str | None
         problem.layout = DerivativeLayout.full(c.parameters.n)
     name = method or (Method.PRB if spec.method == AUTO else spec.method)
     facts = None
-    if needs_effect_plan(name, spec.jacobian):
+    if needs_effect_plan(name, spec.jacobian) and spec.training.head is None:
         on_phase(f"probing the scene's effects for {c.parameters.n} scalars (forward-mode derivatives)")
         facts = probe_scene(c.scene, c.parameters, seed=derive_seed(spec.seed, "probe"), max_delta_depth=64)
         problem.apply_plan(plan_effects(facts, name, method_class(name).uses, spec.effects, spec.training.delta_depth))
@@ -250,9 +251,9 @@ def needs_effect_plan(method: str, jacobian: str = "method") -> bool:
 def plan_for(prepared: Prepared, method: str, jacobian: str = "method") -> None:
     """Plan the prepared problem's effects for ``method`` (probing the scene the first time a
     method needs the plan); nothing to do for a method that needs none."""
-    if not needs_effect_plan(method, jacobian):
-        return
     spec = prepared.spec
+    if not needs_effect_plan(method, jacobian) or spec.training.head is not None:
+        return  # the many-parameter head simulates every effect (no per-scalar plan of P scalars)
     if prepared.facts is None:
         problem = prepared.problem
         problem.parameters.assign(prepared.init)

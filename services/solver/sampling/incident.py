@@ -205,6 +205,15 @@ def _evaluate(scene, g: IncidentGeometry, attach_bsdf: bool = True, attach_emiss
     return emitted, throughput
 
 
+def evaluate_attached(scene: mi.Scene, geometry: IncidentGeometry, *, attach_bsdf: bool = True,
+                      attach_emission: bool = True) -> tuple[Color, Color]:
+    """``emitted`` and ``throughput`` on ``geometry`` with their AD edges kept (under
+    ``ParameterSet.tracking``): what a caller differentiates in reverse mode itself (the
+    many-parameter head's ``dz/dp``, ``services.solver.estimators.methods.head``). Non-finite
+    lanes are not zeroed here; the caller guards them."""
+    return _evaluate(scene, geometry, attach_bsdf, attach_emission)
+
+
 def sample_incident(scene: mi.Scene, si: mi.SurfaceInteraction3f, sampler: mi.Sampler, *,
                     delta_depth: int, parameters: Tracked | None = None, scalars=None,
                     attach_bsdf: bool = True, attach_emission: bool = True,

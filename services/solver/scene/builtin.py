@@ -19,6 +19,9 @@ declared at the top level and referenced by the shapes, so parameter keys read a
 ``room-open-8``     The same room without its front wall: light escapes, paths are shorter.
 ``textured-box``    The Cornell box without its blocks, a 64 x 64 albedo texture on the back wall
                     (``wall.reflectance.data``), 4 cameras (:mod:`.textured`).
+``textured-floor``  The same box whose floor has a 16 x 16 albedo texture
+                    (``floor-paint.reflectance.data``), hidden from its 2 cameras: the texture
+                    acts through the light it reflects onto the walls (:mod:`.textured`).
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from collections.abc import Callable
 
 from schemas.scenes import BUILTIN_SCENES
 from services.solver.backend import use_mitsuba
-from services.solver.scene.textured import textured_box_builtin
+from services.solver.scene.textured import textured_box_builtin, textured_floor_builtin
 
 
 def _diffuse(rgb) -> dict:
@@ -167,6 +170,7 @@ FACTORIES: dict[str, Callable[[], dict]] = {
     "room-closed-8": room_closed_8,
     "room-open-8": room_open_8,
     "textured-box": textured_box_builtin,
+    "textured-floor": textured_floor_builtin,
 }
 if set(FACTORIES) != set(BUILTIN_SCENES):  # the catalogue and the factories must name the same scenes
     raise ImportError(f"built-in scenes differ: {sorted(set(FACTORIES) ^ set(BUILTIN_SCENES))}")

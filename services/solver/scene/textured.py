@@ -79,6 +79,52 @@ def textured_box_builtin() -> dict:
     return textured_box()
 
 
+#: The built-in ``textured-floor``: texels per side, cameras, film side, the texture's key.
+FLOOR_SIZE, FLOOR_VIEWS, FLOOR_FILM = 16, 2, 32
+FLOOR_KEY = "floor-paint.reflectance.data"
+
+
+def smooth_albedo(size: int = FLOOR_SIZE) -> np.ndarray:
+    """The floor's true albedo, ``(size, size, 3)`` float32 within [0.15, 0.85]: smooth colour ramps
+    only (:func:`true_albedo` without its checker; light reflected once carries low frequencies)."""
+    v, u = np.meshgrid(np.linspace(0.0, 1.0, size), np.linspace(0.0, 1.0, size), indexing="ij")
+    red = 0.2 + 0.6 * u
+    green = 0.3 + 0.5 * np.sin(np.pi * v)
+    blue = 0.8 - 0.6 * u * v
+    return np.clip(np.stack([red, green, blue], axis=-1), 0.15, 0.85).astype(np.float32)
+
+
+def textured_floor(size: int = FLOOR_SIZE, views: int = FLOOR_VIEWS, film: int = FLOOR_FILM,
+                   texture: np.ndarray | None = None) -> dict:
+    """The Cornell box without its blocks whose floor has a bitmap albedo (``floor-paint``), seen by
+    ``views`` cameras low inside the box looking up at the back wall, the side walls and the
+    ceiling: no camera sees the floor, so the texture reaches the images only by the light it
+    reflects onto what they see."""
+    mi = use_mitsuba()
+    box = mi.cornell_box()
+    T = mi.ScalarTransform4f
+    scene = {"type": "scene", "integrator": box["integrator"]}
+    for k in range(views):
+        x = 0.5 * (2 * k + 1 - views) / max(views, 1)
+        scene[f"sensor-{k}"] = {
+            "type": "perspective", "fov": 39.3077, "fov_axis": "smaller",
+            "to_world": T().look_at(origin=[x, -0.9, 0.99], target=[-x, 0.1, -1.0], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": film, "height": film, "rfilter": {"type": "box"}},
+        }
+    for name in ("white", "green", "red"):
+        scene[name] = box[name]
+    data = smooth_albedo(size) if texture is None else np.asarray(texture, np.float32)
+    scene["floor-paint"] = {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": mi.Bitmap(data), "raw": True}}
+    for name in ("light", "floor", "ceiling", "back", "green-wall", "red-wall"):
+        scene[name] = box[name]
+    scene["floor"] = dict(box["floor"], bsdf={"type": "ref", "id": "floor-paint"})
+    return scene
+
+
+def textured_floor_builtin() -> dict:
+    return textured_floor()
+
+
 # ------------------------------------------------------------------------------------ XML
 
 _TAGS = {"diffuse": "bsdf", "rectangle": "shape", "cube": "shape", "perspective": "sensor", "path": "integrator",

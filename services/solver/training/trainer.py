@@ -22,6 +22,7 @@ import logging
 import time
 from collections.abc import Callable
 
+import numpy as np
 import torch
 
 from schemas.solver import TrainingConfig
@@ -29,7 +30,9 @@ from services.solver.estimators.methods.base import Fields, GradientMethod
 from services.solver.estimators.problem import Problem
 from services.solver.fields.averaging import WeightAverage
 from services.solver.fields.field import NeuralField
+from services.solver.fields.head import ParameterHead
 from services.solver.seeds import derive_seed
+from services.solver.training.head import HeadBatch, draw_head_batch, head_lhs, head_rhs_samples
 from services.solver.training.pool import ResidualPool
 from services.solver.training.residuals import (
     ResidualBatch,
@@ -71,12 +74,22 @@ class FieldTrainer:
         self.seed = seed
         self.steps = 0
         lo, hi = problem.bbox
-        if differential and problem.layout.outputs == 0:
+        #: dL_theta is the many-parameter head (``training.head``; services.solver.training.head)
+        head = differential and config.head is not None
+        if differential and not head and problem.layout.outputs == 0:
             raise ValueError("dL_theta has no output: no active scalar (see the effect plan)")
         # each field is initialised from its own seed: training one does not change the other
         self.radiance = self._field(config.radiance, 3, lo, hi, "radiance") if radiance else None
-        self.differential = (self._field(config.differential, problem.layout.outputs, lo, hi, "differential")
-                             if differential else None)
+        self.differential: NeuralField | None = None
+        self.head: ParameterHead | None = None  # dL_theta as the many-parameter head, in place of differential
+        if head:
+            assert config.head is not None
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(derive_seed(self.seed, "init", "differential"))
+                self.head = ParameterHead(config.differential, config.head.rank, problem.parameters.n, lo, hi)
+        elif differential:
+            self.differential = self._field(config.differential, problem.layout.outputs, lo, hi, "differential")
+        self._head_batch: HeadBatch | None = None
         self.optimizers = {
             name: torch.optim.Adam(field.parameters(), lr=config.learning_rate, eps=1e-10, fused=True)
             for name, field in self.fields().items()
@@ -90,7 +103,8 @@ class FieldTrainer:
         if config.pool.enabled:
             self.pool = ResidualPool(problem, config.residual_points, config.incident_samples,
                                      chunks=config.pool.chunks, reuse=config.pool.reuse,
-                                     derivatives=self.differential is not None, fields=list(self.fields().values()),
+                                     derivatives=self.differential is not None,
+                                     fields=[f for f in self.fields().values() if isinstance(f, NeuralField)],
                                      seed=seed, camera_fraction=config.camera_points)
 
     def _field(self, config, channels: int, lo, hi, name: str) -> NeuralField:
@@ -98,17 +112,21 @@ class FieldTrainer:
             torch.manual_seed(derive_seed(self.seed, "init", name))
             return NeuralField(config, channels, lo, hi)
 
-    def fields(self) -> dict[str, NeuralField]:
+    def fields(self) -> dict[str, NeuralField | ParameterHead]:
         """The fields being trained (live weights)."""
-        return {name: f for name, f in (("radiance", self.radiance), ("differential", self.differential)) if f is not None}
+        pairs = (("radiance", self.radiance), ("differential", self.differential if self.head is None else self.head))
+        return {name: f for name, f in pairs if f is not None}
 
     def queried(self) -> Fields:
         """The fields that gradients and images read: the weight averages (``weight_averaging``)
         or, without them, the live fields."""
         if not self.averages:
-            return Fields(self.radiance, self.differential)
+            return Fields(self.radiance, self.differential, self.head)
         pick = {name: average.average for name, average in self.averages.items()}
-        return Fields(pick.get("radiance"), pick.get("differential"))
+        radiance, differential = pick.get("radiance"), pick.get("differential")
+        return Fields(radiance if isinstance(radiance, NeuralField) else None,
+                      differential if isinstance(differential, NeuralField) else None,
+                      differential if isinstance(differential, ParameterHead) else None)
 
     def _update_averages(self) -> None:
         if self.averages:
@@ -133,9 +151,12 @@ class FieldTrainer:
         self.calibrated[name] = True
         log.debug("%s output scale %s", name, field.output_scale.tolist())
 
-    def _step_field(self, name: str, field: NeuralField, lhs_fn, rhs_fn, batch: ResidualBatch) -> tuple[float, float]:
+    def _step_field(self, name: str, field: NeuralField | ParameterHead, lhs_fn, rhs_fn,
+                    batch: ResidualBatch | HeadBatch, scale: torch.Tensor | None = None) -> tuple[float, float]:
         """One Adam step on ``field``; ``rhs_fn`` gives the right-hand side's ``M`` terms
-        ``(N, M, C)``. Returns the training loss and the debiased residual (nan when skipped)."""
+        ``(N, M, C)``; ``scale`` ``(C,)`` (default the field's output scale). Returns the training
+        loss and the debiased residual (nan when skipped)."""
+        scale = field.output_scale if scale is None else scale
         optimizer = self.optimizers[name]
         for group in optimizer.param_groups:
             group["lr"] = self._learning_rate()
@@ -145,10 +166,10 @@ class FieldTrainer:
             rhs = rhs_samples.mean(1)
         lhs = lhs_fn(batch)
         lhs = lhs.reshape(lhs.shape[0], -1)
-        loss, clipped = residual_loss(lhs, rhs, batch.weight, field.output_scale, self.config.residual_clip)
+        loss, clipped = residual_loss(lhs, rhs, batch.weight, scale, self.config.residual_clip)
         self.problem.count_sanitized(f"{name}: residuals clipped", clipped)
         with torch.no_grad():
-            residual = debiased_residual(lhs, rhs_samples, batch.weight, field.output_scale)
+            residual = debiased_residual(lhs, rhs_samples, batch.weight, scale)
         optimizer.zero_grad(set_to_none=True)
         if not torch.isfinite(loss):
             self.problem.count_sanitized(f"{name}: steps skipped (non-finite loss)", 1)
@@ -177,7 +198,9 @@ class FieldTrainer:
             radiance_step = self._step_field("radiance", self.radiance, lambda b: self.radiance(b.points),
                                              lambda b: radiance_rhs_samples(b, self.radiance), batch)
         middle = time.perf_counter()
-        if self.differential is not None:
+        if self.head is not None:
+            differential = self._head_step()
+        elif self.differential is not None:
             batch = self._batch(1, derivatives=True)
             layout = self.problem.layout
             if not self.calibrated["differential"]:
@@ -198,7 +221,8 @@ class FieldTrainer:
         assert self.pool is not None  # step() calls this only with a pool
         start = time.perf_counter()
         batch = self.pool.batch(self.steps)
-        layout, radiance, differential = self.problem.layout, self.radiance, self.differential
+        layout, radiance = self.problem.layout, self.radiance
+        differential = self.differential
         if radiance is not None and not self.calibrated["radiance"]:
             self._calibrate("radiance", radiance, batch.emitted.mean(1))
         if differential is not None and not self.calibrated["differential"]:
@@ -212,7 +236,9 @@ class FieldTrainer:
             radiance_step = self._step_field("radiance", radiance, lambda b: radiance(b.points),
                                              lambda b: radiance_rhs_samples(b, radiance, l_hit), batch)
         middle = time.perf_counter()
-        if differential is not None:
+        if self.head is not None:
+            diff = self._head_step()
+        elif differential is not None:
             diff = self._step_field(
                 "differential", differential, lambda b: differential(b.points),
                 lambda b: layout.pack(differential_rhs_samples(b, radiance, differential, layout, l_hit, dl_hit)),
@@ -223,6 +249,27 @@ class FieldTrainer:
         end = time.perf_counter()
         self.last = _stats(radiance_step, diff, end - start, middle - start, end - middle, batch_id)
         return self.last
+
+    def _head_step(self) -> tuple[float, float]:
+        """One Adam step on the many-parameter head (``services.solver.training.head``): a batch
+        with its drawn scalars, redrawn every ``pool.reuse`` steps and whenever the parameters
+        changed (its BSDF derivatives were evaluated at the old values)."""
+        head, config = self.head, self.config
+        assert head is not None and config.head is not None
+        batch = self._head_batch
+        if (batch is None or self.steps % config.pool.reuse == 0
+                or not np.array_equal(batch.values, self.problem.parameters.values())):
+            batch = self._head_batch = draw_head_batch(
+                self.problem, config.residual_points, config.incident_samples, config.head.scalars_per_step,
+                derive_seed(self.seed, "head", self.steps), config.camera_points)
+        if not self.calibrated["differential"]:
+            with torch.no_grad():
+                direct = head_rhs_samples(batch, head, self.radiance, indirect=False).mean(1)
+            head.calibrate(_channel_scale(direct.reshape(-1, 3)))
+            self.calibrated["differential"] = True
+        return self._step_field("differential", head, lambda b: head_lhs(b, head),
+                                lambda b: head_rhs_samples(b, head, self.radiance), batch,
+                                scale=head.output_scale.repeat(len(batch.scalars)))
 
     def train(self, steps: int, on_step: Callable[[StepStats], None] | None = None) -> list[StepStats]:
         """``steps`` steps; ``on_step`` sees each one's statistics (and may raise to stop)."""

@@ -36,6 +36,7 @@ if TYPE_CHECKING:
     from services.solver.estimators.problem import Problem
     from services.solver.estimators.render import PathDepth
     from services.solver.fields.field import NeuralField
+    from services.solver.fields.head import ParameterHead
     from services.solver.scene.planner import EffectPlan
 
 RADIANCE, DIFFERENTIAL = "radiance", "differential"
@@ -47,9 +48,12 @@ Loss = Callable[[np.ndarray], tuple[float, np.ndarray]]
 class Fields:
     """The trained fields a method may use (``None`` when not trained)."""
 
-    def __init__(self, radiance: NeuralField | None = None, differential: NeuralField | None = None):
+    def __init__(self, radiance: NeuralField | None = None, differential: NeuralField | None = None,
+                 head: ParameterHead | None = None):
         self.radiance = radiance
         self.differential = differential
+        #: dL_theta as the many-parameter head (``training.head``), instead of ``differential``
+        self.head = head
 
 
 class GradientMethod(ABC):
