@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def run_to_end(spec, store: Path, jobs: int = 1) -> tuple[dict, list[dict]]:
+def run_to_end(spec, store: Path, jobs: int = 1, on_rows=None) -> tuple[dict, list[dict]]:
     """``spec`` run to its end in the embedded default (as ``ndrf experiment`` runs it: the store
     is ``store``, ``jobs`` worker threads each run one job at a time in a sandboxed child, the
     scheduler admits the runs); the experiment and its rows as the API gives them."""
@@ -45,7 +45,12 @@ def run_to_end(spec, store: Path, jobs: int = 1) -> tuple[dict, list[dict]]:
         record = runtime.experiments.create(spec, preflight=preflight, max_concurrent=jobs)
         runtime.start_embedded_workers(make_worker)
         runtime.start_experiment_scheduler(interval=0.2)
+        done = 0
         while not (record := runtime.experiments.states.get(record.id)).status.finished:
+            finished = sum(run.status in ("succeeded", "failed", "canceled") for run in record.runs)
+            if on_rows is not None and finished > done:   # the rows so far (a run cut short keeps them)
+                done = finished
+                on_rows([row.model_dump(mode="json") for row in runtime.experiments.rows(record)])
             time.sleep(0.5)
         rows = [row.model_dump(mode="json") for row in runtime.experiments.rows(record)]
         return runtime.experiments.public(record).model_dump(mode="json"), rows
@@ -53,7 +58,11 @@ def run_to_end(spec, store: Path, jobs: int = 1) -> tuple[dict, list[dict]]:
         runtime.stop(timeout=90)
 
 
-def experiment(job: dict, seeds: list[int], rates: list[float], target_error: float, warm: bool) -> dict:
+KEEP = ("index", "seed", "varied", "time_to_error", "final_parameter_error", "seconds", "wall_seconds", "warm_start")
+
+
+def experiment(job: dict, seeds: list[int], rates: list[float], target_error: float, warm: bool,
+               on_rows=None) -> dict:
     """One experiment to its end in a scratch store; its rows and wall seconds."""
     from schemas.experiments import ExperimentSpec
 
@@ -64,16 +73,14 @@ def experiment(job: dict, seeds: list[int], rates: list[float], target_error: fl
     folder = Path(tempfile.mkdtemp(prefix="bench-warm-experiment-"))
     try:
         started = time.perf_counter()
-        public, rows = run_to_end(spec, folder)
+        public, rows = run_to_end(spec, folder, on_rows=on_rows)
         seconds = time.perf_counter() - started
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     if public["status"] != "succeeded":
         raise RuntimeError(f"the {'warm' if warm else 'cold'} experiment {public['status']}: "
                            f"{[r.get('error') for r in rows]}")
-    keep = ("index", "seed", "varied", "time_to_error", "final_parameter_error", "seconds", "wall_seconds",
-            "warm_start")
-    return {"wall_seconds": seconds, "runs": [{k: row.get(k) for k in keep} for row in rows]}
+    return {"wall_seconds": seconds, "runs": [{k: row.get(k) for k in KEEP} for row in rows]}
 
 
 def table(result: dict, target_error: float) -> str:
@@ -81,13 +88,14 @@ def table(result: dict, target_error: float) -> str:
         return "not reached" if value is None else value
 
     cold, warm = result.get("cold"), result.get("warm")
+    by_index = [{r["index"]: r for r in (e or {"runs": []})["runs"]} for e in (cold, warm)]
     lines = []
-    for i, run in enumerate((cold or warm)["runs"]):
-        c = cold["runs"][i] if cold else {}
-        w = warm["runs"][i] if warm else {}
+    for index in sorted(set(by_index[0]) | set(by_index[1])):
+        c, w = by_index[0].get(index, {}), by_index[1].get(index, {})
+        run = c or w
         reused = w.get("warm_start") or {}
-        lines.append([run["index"], run["seed"], run["varied"].get("learning_rate"),
-                      cell(c.get("time_to_error")), cell(w.get("time_to_error")),
+        lines.append([index, run["seed"], run["varied"].get("learning_rate"),
+                      cell(c.get("time_to_error")) if c else "", cell(w.get("time_to_error")) if w else "",
                       c.get("final_parameter_error"), w.get("final_parameter_error"),
                       c.get("seconds"), w.get("seconds"), c.get("wall_seconds"), w.get("wall_seconds"),
                       reused.get("top_up_steps", "cold (source)" if w else "")])
@@ -121,12 +129,21 @@ def main(argv: list[str] | None = None) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     result: dict = {"machine": machine(), "job": str(args.job), "target_error": args.target_error,
                     "iterations": job["iterations"], "note": "a shared 2-core machine (other work ran beside it)"}
-    for name, warm in (("warm", True), ("cold", False)):   # warm first: a failure shows early
-        result[name] = experiment(job, seeds, rates, args.target_error, warm)
-        log.info("%s experiment: %.0f s", name, result[name]["wall_seconds"])
-        out.write_text(json.dumps(result, indent=1))            # a run cut short keeps the first experiment
+    def write() -> None:
+        out.write_text(json.dumps(result, indent=1))
         write_markdown(out, "bench.warm_start_experiment", argv,
                        f"{result['note']}; {job['iterations']} iterations.\n\n" + table(result, args.target_error))
+
+    for name, warm in (("warm", True), ("cold", False)):   # warm first: a failure shows early
+
+        def partial(rows: list[dict], name=name) -> None:
+            result[name] = {"wall_seconds": None, "partial": True,
+                            "runs": [{k: row.get(k) for k in KEEP} for row in rows if row["status"] == "succeeded"]}
+            write()
+
+        result[name] = experiment(job, seeds, rates, args.target_error, warm, on_rows=partial)
+        log.info("%s experiment: %.0f s", name, result[name]["wall_seconds"])
+        write()
     log.info("\n%s", table(result, args.target_error))
 
 
