@@ -138,10 +138,15 @@ class ViewSessions:
             old.close()
         fresh = ViewSession(job_id, digest, spec, checkpoint, limits)
         with self.lock:
-            self.sessions[key] = fresh
+            other = self.sessions.get(key)
+            if other is None or not other.alive():
+                self.sessions[key] = fresh
             if self._reaper is None:
                 self._reaper = threading.Thread(target=self._reap, name="view-sessions-reaper", daemon=True)
                 self._reaper.start()
+        if other is not None and other.alive():   # another request started one meanwhile: use that one
+            fresh.close()
+            return other, True
         return fresh, True
 
     def drop(self, session: ViewSession) -> None:
