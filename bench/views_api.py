@@ -70,10 +70,13 @@ def measure(scene: str, views: int, one_off: int, training: dict) -> dict:
     job = json.loads((ROOT / "examples" / f"{scene}.json").read_text())
     job.update(iterations=3, images_every=3, training={**job.get("training", {}), **training})
     tmp = Path(tempfile.mkdtemp(prefix="bench-views-api-"))
-    env = {"NDRF_STORE": str(tmp / "store"), "NDRF_VIEW_KEEP_SECONDS": "120"}
+    env = {"NDRF_STORE": str(tmp / "store"), "NDRF_VIEW_KEEP_SECONDS": "120",   # patient limits: a shared machine
+           "NDRF_MAX_PREFLIGHT_SECONDS": "1800", "NDRF_MAX_VIEW_SECONDS": "1800"}
     proc, api = start_api(tmp, env)
     try:
-        _, accepted = post(api, "/v1/jobs", job)
+        status, accepted = post(api, "/v1/jobs", job)
+        if status != 202:
+            raise RuntimeError(f"the job was refused: {status} {accepted}")
         api.wait_status(accepted["id"], {"succeeded"}, 3600)
         path = f"/v1/jobs/{accepted['id']}/views"
         first, view = timed(api, path, {"sensor": 0, "resolution": [128, 128], "spp": 4, "inline": True})
