@@ -20,6 +20,7 @@ import argparse
 import json
 import logging
 import math
+import shutil
 import signal
 import statistics
 import tempfile
@@ -91,6 +92,9 @@ def measure(scene: str, views: int, one_off: int, training: dict) -> dict:
             assert answer["warm"], answer          # the warm child answered
             full.append(seconds)
             render.append(answer["seconds"]["scene"] + answer["seconds"]["fields"])
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     finally:
         proc.kill(signal.SIGKILL)
     proc, api = start_api(tmp, {**env, "NDRF_VIEW_KEEP_SECONDS": "0"})
@@ -99,6 +103,7 @@ def measure(scene: str, views: int, one_off: int, training: dict) -> dict:
                                   "inline": True})[0] for k in range(one_off)]
     finally:
         proc.kill(signal.SIGKILL)
+        shutil.rmtree(tmp, ignore_errors=True)
     return {"scene": scene, "job": job, "first": first, "warm_128": full, "warm_64": preview,
             "render_128": render, "one_off_128": cold}
 
