@@ -97,6 +97,20 @@ class Sweep(_Strict):
         return seeds
 
 
+class ExperimentWarmStart(_Strict):
+    """Every run but the first warm-started from the first run (run 0): its job gets
+    ``warm_start: {job: <run 0's job>, ...}`` once run 0 has succeeded."""
+
+    source: Literal["first_run"] = Field("first_run", description="Where the fields come from: 'first_run', run 0 "
+                                                                   "(the first grid combination, first seed), run "
+                                                                   "cold before any other run starts.")
+    parameters: bool = Field(False, description="Also start from run 0's final parameters (else each run's init).")
+    top_up_steps: int | None = Field(None, ge=0, le=100000,
+                                     description="Most training steps of each warm run's adaptive top-up (the job's "
+                                                 "warm_start.top_up_steps). Default: a quarter of "
+                                                 "training.warmup_steps.")
+
+
 class ExperimentSpec(Sweep):
     """An experiment: the base job, what varies, how many runs at once, and the objective."""
 
@@ -111,6 +125,16 @@ class ExperimentSpec(Sweep):
     objective: Objective = Field(default_factory=Objective, description="What the best run minimises or maximises.")
     target_error: float = Field(0.05, gt=0, le=1e6, description="The parameter error whose time to reach is reported "
                                                                  "per run (time_to_error).")
+    warm_start: ExperimentWarmStart | None = Field(
+        None, description="'first_run' (or {source, parameters, top_up_steps}): run 0 runs cold, and every other run "
+                          "waits for it and starts from its trained fields (warm_start: {job: run 0's job}). If run "
+                          "0 fails or is canceled, the other runs fail without a job (retry re-runs run 0 first). "
+                          "Default: every run cold.")
+
+    @field_validator("warm_start", mode="before")
+    @classmethod
+    def _warm_start_shorthand(cls, value):
+        return {"source": value} if isinstance(value, str) else value
 
     @model_validator(mode="after")
     def _one_base(self):
@@ -161,6 +185,7 @@ class RunState(BaseModel):
     jobs: list[str] = Field(default_factory=list, description="Every job of this run (retries add one).")
     admissions: int = Field(0, description="Times the run was admitted (its idempotency key counts them).")
     since: float | None = Field(None, description="When the current admission started (epoch seconds).")
+    error: str | None = Field(None, description="Why the run failed without a job (its warm-start source failed).")
 
 
 class ExperimentRecord(BaseModel):
@@ -207,7 +232,10 @@ class RunRow(BaseModel):
     time_to_error: float | None = Field(None, description="Compute seconds until the parameter error first fell to "
                                                           "the experiment's target_error (null: not reached).")
     attempts: int = Field(0, description="Jobs this run has had (a retry adds one).")
-    error: str | None = Field(None, description="Why the run's job failed.")
+    error: str | None = Field(None, description="Why the run's job failed (or why the run got no job).")
+    warm_start: dict[str, Any] | None = Field(None, description="What the run reused (its job's plan.json "
+                                                                "warm_start: source job, fields, top-up steps and "
+                                                                "seconds, warm-up steps saved); null: a cold run.")
 
 
 class Aggregate(BaseModel):

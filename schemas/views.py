@@ -42,6 +42,10 @@ class ViewRequest(BaseModel):
                                 description="Also render prb's gradient image from the same camera at this spp "
                                             "(forward mode, one render per group of scalars; slow).")
     seed: int = Field(default=0, ge=0, le=2**31 - 1, description="Seed of the pixel samples.")
+    inline: bool = Field(default=False,
+                         description="Answer the PNGs in the response (images: name -> data URL) and store "
+                                     "nothing (no files, no disk budget): for interactive viewers such as the "
+                                     "dashboard's orbit viewer.")
 
     @model_validator(mode="after")
     def _one_camera(self) -> ViewRequest:
@@ -69,3 +73,11 @@ class ViewFiles(BaseModel):
     scalars: list[str] = Field(description="The scalars of gradients.npy's first axis.")
     seconds: dict[str, float] = Field(description="Seconds spent: load (scene, fields), fields (the view), prb.")
     iteration: int | None = Field(default=None, description="The checkpoint's next iteration (its fields' age).")
+    images: dict[str, str] = Field(default_factory=dict,
+                                   description="With inline: radiance.png, gradient-<p>.png (and prb-<p>.png) as "
+                                               "data:image/png;base64 URLs; files is then empty.")
+    camera: dict = Field(default_factory=dict, description="The camera rendered: origin, target, up, fov and "
+                                                           "resolution (a sensor's too: its target is the point "
+                                                           "of its axis nearest the scene's centre).")
+    warm: bool = Field(default=False, description="Whether a warm view child of this job's checkpoint answered "
+                                                  "(no child start, scene load or checkpoint restore).")

@@ -73,6 +73,7 @@ class Runtime:
     _last_sweep: float = field(default=float("-inf"), repr=False)
     _experiments: Any = field(default=None, repr=False)
     scheduler: Any = None  # services.experiments.scheduler.Scheduler, once started
+    _view_sessions: Any = field(default=None, repr=False)
     scheduler_thread: threading.Thread | None = None
 
     @property
@@ -93,6 +94,15 @@ class Runtime:
 
             self._experiments = ExperimentService(self.service, self.settings.limits)
         return self._experiments
+
+    @property
+    def view_sessions(self):
+        """This process's warm view children (:mod:`services.jobs.view_sessions`)."""
+        if self._view_sessions is None:
+            from services.jobs.view_sessions import ViewSessions
+
+            self._view_sessions = ViewSessions(self.settings.view_keep_seconds, self.settings.view_children)
+        return self._view_sessions
 
     def start_experiment_scheduler(self, interval: float = 0.5) -> None:
         """Admit experiment runs from this process (API processes and workers all run one; with
@@ -170,6 +180,8 @@ class Runtime:
         self._stopping.set()
         if self.scheduler is not None:
             self.scheduler.stop()
+        if self._view_sessions is not None:
+            self._view_sessions.close()
         for worker in self.workers:
             if worker is not None:
                 worker.request_stop()

@@ -95,6 +95,12 @@ class Settings(BaseSettings):
                                                     "(empty: s3_endpoint).")
     s3_usage_seconds: float = Field(300.0, ge=1.0, description="Seconds the store's total size (/metrics) is "
                                                                "reused before the bucket is listed again.")
+    view_keep_seconds: float = Field(60.0, ge=0.0, le=3600.0,
+                                     description="A job's warm view child (POST /v1/jobs/{id}/views: the checkpoint "
+                                                 "restored once, then one view after another) is kept this long "
+                                                 "after its last view; 0: every view starts its own child.")
+    view_children: int = Field(2, ge=0, le=64, description="Most warm view children of one API process (the least "
+                                                           "recently used one is closed first).")
     scratch: str = Field("", description="Local folder where workers stage scenes for their sandboxed "
                                          "processes (default: <tmp>/ndrf-scratch).")
     api_keys: Annotated[list[str], NoDecode] = Field(

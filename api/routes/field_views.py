@@ -3,6 +3,7 @@ Fig. 4b), in a sandboxed child, and the files of each view."""
 
 from __future__ import annotations
 
+import base64
 import re
 from typing import Annotated
 
@@ -34,13 +35,15 @@ def _url(job_id: str, view_id: str, name: str) -> str:
 async def create(job_id: str, request: ViewRequest, runtime: RuntimeDep, caller: CallerDep):
     """Render ``L_phi`` and every scalar's ``dL_theta`` at the first hits of the camera's rays, from
     the job's latest checkpoint (a running job's too), and ``prb``'s gradient image from the same
-    camera when ``prb_spp`` is set. A job without a checkpoint yet, or whose method trains no
+    camera when ``prb_spp`` is set. A job's checkpoint is restored once in a warm sandboxed child
+    kept for ``NDRF_VIEW_KEEP_SECONDS`` after its last view (the next views skip the child's start);
+    ``inline`` answers the PNGs in the response and stores nothing. A job without a checkpoint yet, or whose method trains no
     field, or whose files would exceed the job's disk budget, is a ``409``; a camera that cannot be
     built a ``422``."""
     files = files_or_404(runtime, job_id, caller)
     try:
-        view_id, names, meta = await anyio.to_thread.run_sync(create_view, files, request, runtime.settings.limits,
-                                                              limiter=runtime.blocking)
+        view_id, written, meta = await anyio.to_thread.run_sync(create_view, files, request, runtime.settings.limits,
+                                                                runtime.view_sessions, limiter=runtime.blocking)
     except NoCheckpoint as exc:
         raise ProblemError(409, "Conflict", str(exc), slug="no-checkpoint") from None
     except OverBudget as exc:
@@ -49,9 +52,14 @@ async def create(job_id: str, request: ViewRequest, runtime: RuntimeDep, caller:
         status = 409 if "trained no field" in exc.message else 422
         raise ProblemError(status, "Invalid view", str(exc), slug="invalid-view",
                            errors=[(exc.field, exc.message)]) from None
-    return ViewFiles(id=view_id, files={name: _url(job_id, view_id, name) for name in names},
-                     scalars=meta.get("scalars", []), seconds=meta.get("seconds", {}),
-                     iteration=meta.get("iteration"))
+    if request.inline:
+        images = {name: "data:image/png;base64," + base64.b64encode(data).decode() for name, data in written.items()}
+        files_ = {}
+    else:
+        images, files_ = {}, {name: _url(job_id, view_id, name) for name in sorted(written)}
+    return ViewFiles(id=view_id, files=files_, images=images, scalars=meta.get("scalars", []),
+                     seconds=meta.get("seconds", {}), iteration=meta.get("iteration"), camera=meta.get("camera") or {},
+                     warm=bool(meta.get("warm")))
 
 
 @router.get("/{view_id}/{name}", summary="A file of a view",

@@ -47,7 +47,11 @@ def job_metrics(files: JobFiles, record: JobRecord, target_error: float) -> dict
     plan = files.read(JobFiles.PLAN) or {}
     target = plan.get("target_values")
     seconds, errors, losses = [], [], []
-    total = 0.0
+    reused = plan.get("warm_start")
+    # a warm start's top-up trains before iteration 0 (a cold run's warm-up is in iteration 0's
+    # training seconds): it counts, so that warm and cold runs are compared on what they cost
+    top_up = float((reused or {}).get("top_up_seconds") or 0.0)
+    total = top_up
     for k in files.iterations():
         item = files.iteration_record(k)
         if item is None:
@@ -65,7 +69,7 @@ def job_metrics(files: JobFiles, record: JobRecord, target_error: float) -> dict
             "initial_error": initial, "final_loss": losses[-1] if losses else None,
             "final_parameter_error": errors[-1] if errors else initial,
             "total_seconds": total if seconds else None, "time_to_error": reached,
-            "wall_seconds": wall_seconds(record), "target_error": target_error}
+            "wall_seconds": wall_seconds(record), "target_error": target_error, "warm_start": reused}
 
 
 def _max_abs(values, target) -> float | None:
@@ -93,6 +97,8 @@ def run_row(run: RunState, record: JobRecord | None, metrics: dict | None, plann
         row.status = record.status.value if run.status not in ("pending", "admitting") else run.status
         row.iterations_planned = record.iterations
         row.error = record.error
+    elif run.error:
+        row.error = run.error
     if metrics:
         row.iterations = metrics["iterations"]
         row.final_loss = metrics["final_loss"]
@@ -100,6 +106,7 @@ def run_row(run: RunState, record: JobRecord | None, metrics: dict | None, plann
         row.seconds = metrics["total_seconds"]
         row.wall_seconds = metrics["wall_seconds"]
         row.time_to_error = metrics["time_to_error"]
+        row.warm_start = metrics.get("warm_start")
     return row
 
 
@@ -147,7 +154,8 @@ def results_csv(rows: list[RunRow]) -> str:
     for row in rows:
         fields += [k for k in row.varied if k not in fields]
     head = ["run", "job", "status", "seed", *fields, "iterations", "iterations_planned", "final_loss",
-            "final_parameter_error", "seconds", "wall_seconds", "time_to_error", "attempts", "error"]
+            "final_parameter_error", "seconds", "wall_seconds", "time_to_error", "attempts", "error",
+            "warm_start_job", "top_up_steps"]
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n", quoting=csv.QUOTE_MINIMAL)   # separators, quotes, CR/LF quoted
     writer.writerow([escape_cell(cell) for cell in head])
@@ -156,7 +164,8 @@ def results_csv(rows: list[RunRow]) -> str:
         writer.writerow([row.index, escape_cell(row.job or ""), row.status, _cell(row.seed), *varied, row.iterations,
                          _cell(row.iterations_planned), _cell(row.final_loss), _cell(row.final_parameter_error),
                          _cell(row.seconds), _cell(row.wall_seconds), _cell(row.time_to_error), row.attempts,
-                         escape_cell(row.error or "")])
+                         escape_cell(row.error or ""), escape_cell((row.warm_start or {}).get("job") or ""),
+                         _cell((row.warm_start or {}).get("top_up_steps"))])
     return buffer.getvalue()
 
 

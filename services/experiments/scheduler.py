@@ -37,6 +37,7 @@ from typing import Any
 from schemas.experiments import RUN_ACTIVE, ExperimentRecord, RunState
 from schemas.job import JobSpec
 from schemas.records import JobStatus
+from services.experiments import warm_start
 from services.experiments.expand import job_document
 from services.experiments.service import ExperimentService
 from services.experiments.state import UnknownExperiment
@@ -136,7 +137,13 @@ class Scheduler:
         if record.canceled:
             return False
         active = sum(run.status in RUN_ACTIVE for run in record.runs)
-        return active < int(record.sweep.get("max_concurrent", 1)) and any(r.status == "pending" for r in record.runs)
+        return active < int(record.sweep.get("max_concurrent", 1)) and Scheduler._next(record) is not None
+
+    @staticmethod
+    def _next(record: ExperimentRecord) -> RunState | None:
+        """The first pending run that may be admitted now (with a warm start: run 0 first, the
+        others once it has succeeded)."""
+        return next((r for r in record.runs if r.status == "pending" and warm_start.admissible(record, r)), None)
 
     def _rescan(self) -> None:
         """A safety net for markers: every ``rescan_seconds``, mark any unfinished experiment."""
@@ -166,7 +173,7 @@ class Scheduler:
                     status = JobStatus.FAILED.value      # deleted under the experiment
                 if status != run.status:
                     observed[run.index] = status
-        if observed:
+        if observed or warm_start.skip_dependents(record.model_copy(deep=True)):
             events: list[dict] = []
 
             def change(current: ExperimentRecord) -> ExperimentRecord | None:
@@ -175,6 +182,7 @@ class Scheduler:
                     if new and run.status in ("queued", "running") and run.job == record.runs[run.index].job:
                         run.status = new  # type: ignore[assignment]
                         events.append({"type": "run", "index": run.index, "job": run.job, "status": new})
+                events.extend(warm_start.skip_dependents(current))   # the warm-start source failed
                 return current if events else None
 
             record, _ = self.states.update(exp_id, change, events)
@@ -199,7 +207,8 @@ class Scheduler:
             chosen.clear()
             if not self._has_slot(record):
                 return None
-            run = next(r for r in record.runs if r.status == "pending")
+            run = self._next(record)
+            assert run is not None  # _has_slot found one
             run.status, run.admissions, run.since = "admitting", run.admissions + 1, time.time()
             chosen.append(run.index)
             return record
@@ -219,6 +228,7 @@ class Scheduler:
         spec = JobSpec.model_validate(job_document(base, run.values))
         label = ", ".join(f"{k}={v}" for k, v in run.values.items())
         spec = spec.model_copy(update={"name": f"{record.name or exp_id} #{index}: {label}"[:200]})
+        spec = warm_start.warm_spec(record, run, spec)
         try:
             job, _ = self.jobs.submit(spec, Caller(record.owner), f"experiment:{exp_id}:{index}:{admission}",
                                       max_active=self.experiments.limits.active_jobs_per_key,

@@ -23,9 +23,10 @@ from schemas.experiments import (
     RunRow,
     RunState,
 )
+from schemas.job import JobSpec
 from schemas.records import JobRecord
-from services.experiments import results
-from services.experiments.expand import InvalidExperiment, check_sweep, expand, merge
+from services.experiments import results, warm_start
+from services.experiments.expand import InvalidExperiment, check_sweep, expand, job_document, merge
 from services.experiments.state import (
     ExperimentConflict,
     ExperimentStates,
@@ -147,7 +148,7 @@ class ExperimentService:
         varied = check_sweep(sweep, base)
         check_run_count(sweep, base, self.limits)
         planned = expand(sweep, base)
-        validate_runs(base, planned, self.limits, preflight)
+        warm_start.check_runs(sweep, validate_runs(base, planned, self.limits, preflight), None)
         now = now_iso()
         record = ExperimentRecord(id=new_experiment_id(), name=spec.name, owner=caller.owner, created=now,
                                   updated=now, sweep=sweep, varied=varied, base_method=str(spec.base.method),
@@ -192,7 +193,7 @@ class ExperimentService:
             again.clear()
             for run in record.runs:
                 if run.status in ("failed", "canceled"):
-                    run.status, run.job, run.since = "pending", None, None
+                    run.status, run.job, run.since, run.error = "pending", None, None, None
                     again.append(run.index)
             if not again:
                 raise ExperimentConflict(f"experiment {exp_id} has no failed or canceled runs to retry")
@@ -217,7 +218,10 @@ class ExperimentService:
         check_run_count(sweep, base, self.limits)
         known = {run.key for run in current.runs}
         fresh = [p for p in expand(sweep, base) if p.key not in known]
-        validate_runs(base, fresh, self.limits, preflight, first_index=len(current.runs))
+        specs = validate_runs(base, fresh, self.limits, preflight, first_index=len(current.runs))
+        if warm_start.settings(sweep) is not None and current.runs:
+            source = JobSpec.model_validate(job_document(base, current.runs[warm_start.SOURCE].values))
+            warm_start.check_runs(sweep, specs, source, first_index=len(current.runs))
         varied = check_sweep(sweep, base)
         added: list[int] = []
 

@@ -218,6 +218,44 @@ def view(start: dict, out) -> None:
                                 "iteration": restored.iteration, "method": restored.method}, blobs)
 
 
+def views(start: dict, out) -> None:
+    """A warm view child (:mod:`services.jobs.view_sessions`): the checkpoint restored once, then
+    one ``viewed`` (or ``invalid``) frame per ``view`` frame read, until stdin closes."""
+    from schemas.errors import InvalidJob
+    from schemas.job import JobSpec
+    from schemas.views import ViewRequest
+    from services.solver.backend import use_torch
+    from services.solver.optimize.field_views import render_view, restore
+
+    use_torch()
+    spec = JobSpec.model_validate(start["spec"])
+    scene_file = Path(start["scene_file"]) if start.get("scene_file") else None
+    restored, failed = None, None
+    try:
+        restored = restore(spec, Path(start["checkpoint_file"]).read_bytes(), scene_file)
+    except InvalidJob as exc:
+        failed = {"field": exc.field, "message": exc.message}
+    except ValueError as exc:
+        failed = {"field": "view", "message": str(exc)}
+    while (frame := read_frame(sys.stdin.buffer)) is not None:
+        if failed is not None or restored is None:
+            write_frame(out, "invalid", failed)
+            continue
+        try:
+            result = render_view(restored, ViewRequest.model_validate(frame[1]["request"]))
+        except InvalidJob as exc:
+            write_frame(out, "invalid", {"field": exc.field, "message": exc.message})
+            continue
+        except ValueError as exc:
+            write_frame(out, "invalid", {"field": "view", "message": str(exc)})
+            continue
+        blobs = {"radiance": array_bytes(result.radiance), "gradients": array_bytes(result.gradients)}
+        if result.prb is not None:
+            blobs["prb"] = array_bytes(result.prb)
+        write_frame(out, "viewed", {"scalars": result.scalars, "seconds": result.seconds, "camera": result.camera,
+                                    "iteration": restored.iteration, "method": restored.method}, blobs)
+
+
 #: The stop the parent asked for (set by the signal handlers, installed first thing in main:
 #: before that, SIGUSR1 would kill the child).
 STOP: list[str] = []
@@ -251,7 +289,7 @@ def main(argv: list[str]) -> int:
         probe(start, out)
         return 0
     _mitsuba_log_to_stderr()
-    {"check": check, "describe": describe, "view": view, "run": run}[mode](start, out)
+    {"check": check, "describe": describe, "view": view, "views": views, "run": run}[mode](start, out)
     return 0
 
 

@@ -26,6 +26,7 @@ from schemas.views import ViewRequest
 from services.jobs.frames import array_from
 from services.jobs.isolation import ChildFailed, ChildLimits, exchange_frame
 from services.jobs.preflight import checks_folder, public_message, upload_limits
+from services.jobs.view_sessions import ViewSessions
 from services.settings import Limits
 from services.store.images import gradient_png, npy_bytes, srgb_png
 from services.store.job import JobFiles
@@ -65,6 +66,17 @@ def view_limits(limits: Limits) -> ChildLimits:
                        wall_seconds=limits.view_seconds)
 
 
+def _answer(kind: str, meta: dict, blobs: dict[str, bytes]) -> tuple[dict, dict[str, np.ndarray]]:
+    if kind == "invalid":
+        raise InvalidJob(str(meta.get("field", "view")), public_message(str(meta.get("message", "invalid"))))
+    if kind != "viewed":
+        raise InvalidJob("view", f"the view answered {kind!r}")
+    arrays = {"radiance": array_from(blobs["radiance"], ndim=3), "gradients": array_from(blobs["gradients"], ndim=4)}
+    if "prb" in blobs:
+        arrays["prb"] = array_from(blobs["prb"], ndim=4)
+    return meta, arrays
+
+
 def render_in_child(spec: JobSpec, checkpoint: bytes, request: ViewRequest,
                     limits: Limits) -> tuple[dict, dict[str, np.ndarray]]:
     """Render the view in a sandboxed child; returns its description and its arrays. Raises
@@ -79,33 +91,59 @@ def render_in_child(spec: JobSpec, checkpoint: bytes, request: ViewRequest,
             kind, meta, blobs = exchange_frame("view", start, view_limits(limits), folder, "the view")
         except ChildFailed as exc:
             raise InvalidJob("view", public_message(str(exc))) from None
-    if kind == "invalid":
-        raise InvalidJob(str(meta.get("field", "view")), public_message(str(meta.get("message", "invalid"))))
-    if kind != "viewed":
-        raise InvalidJob("view", f"the view answered {kind!r}")
-    arrays = {"radiance": array_from(blobs["radiance"], ndim=3), "gradients": array_from(blobs["gradients"], ndim=4)}
-    if "prb" in blobs:
-        arrays["prb"] = array_from(blobs["prb"], ndim=4)
-    return meta, arrays
+    return _answer(kind, meta, blobs)
 
 
-def create_view(files: JobFiles, request: ViewRequest, limits: Limits) -> tuple[str, list[str], dict]:
+def render_warm(sessions: ViewSessions, job_id: str, spec: JobSpec, checkpoint: bytes, request: ViewRequest,
+                limits: Limits) -> tuple[dict, dict[str, np.ndarray], bool]:
+    """The view from this checkpoint's warm child (started if needed); ``(meta, arrays, warm)``
+    where ``warm`` says an already running child answered. A warm child that died (or was closed
+    idle while this request waited) is replaced once."""
+    for _ in range(2):
+        try:
+            session, started = sessions.session(job_id, spec, checkpoint, limits)
+        except ChildFailed as exc:
+            raise InvalidJob("view", public_message(str(exc))) from None
+        try:
+            kind, meta, blobs = session.view(request)
+        except ChildFailed as exc:
+            sessions.drop(session)
+            if started:
+                raise InvalidJob("view", public_message(str(exc))) from None
+            continue
+        if kind == "invalid" and started:   # a scene or checkpoint it cannot restore: no child kept for it
+            sessions.drop(session)
+        meta, arrays = _answer(kind, meta, blobs)
+        return meta, arrays, not started
+    raise InvalidJob("view", "the view child ended twice")
+
+
+def create_view(files: JobFiles, request: ViewRequest, limits: Limits, sessions: ViewSessions | None = None
+                ) -> tuple[str, dict[str, bytes], dict]:
     """Render a view of the job of ``files`` (the caller has checked who may see it) from its latest
-    checkpoint and store its files under ``views/<id>/``; returns the id, the file names and the
-    view's description. Raises :class:`NoCheckpoint`, :class:`OverBudget` or :class:`InvalidJob`."""
+    checkpoint (in a warm child of ``sessions`` when given and enabled, else a one-off child) and,
+    unless ``request.inline``, store its files under ``views/<id>/``; returns the id, the files
+    and the view's description (``warm``: a warm child answered). Raises :class:`NoCheckpoint`,
+    :class:`OverBudget` or :class:`InvalidJob`."""
     stored = files.read(JobFiles.SPEC)
     checkpoint = files.store.get(files.key(JobFiles.CHECKPOINT))
     if stored is None or checkpoint is None:
         raise NoCheckpoint(f"job {files.job_id} has no checkpoint yet: its fields are written with the first one")
     spec = JobSpec.model_validate(stored)
-    meta, arrays = render_in_child(spec, checkpoint, request, limits)
-    meta = {**meta, "request": request.model_dump(mode="json")}
+    warm = False
+    if sessions is not None and sessions.enabled:
+        meta, arrays, warm = render_warm(sessions, files.job_id, spec, checkpoint, request, limits)
+    else:
+        meta, arrays = render_in_child(spec, checkpoint, request, limits)
+    meta = {**meta, "request": request.model_dump(mode="json"), "warm": warm}
     view_id = secrets.token_hex(6)
     written = view_files(arrays["radiance"], arrays["gradients"], arrays.get("prb"), meta)
+    if request.inline:
+        return view_id, {name: data for name, data in written.items() if name.endswith(".png")}, meta
     size, used = sum(len(data) for data in written.values()), files.store.prefix_bytes(files.prefix)
     if used + size > limits.job_bytes:
         raise OverBudget(f"the view's {size} bytes would take the job's files over {limits.job_bytes} bytes "
                          f"(NDRF_MAX_JOB_BYTES; they hold {used}): delete the job's views or ask for a smaller one")
     for name, data in written.items():
         files.store.put(files.key(f"views/{view_id}/{name}"), data)
-    return view_id, sorted(written), meta
+    return view_id, written, meta

@@ -66,8 +66,19 @@ def test_a_view_of_a_trained_job_names_its_files_and_only_its_owner_reaches_it(c
     assert gradients.shape == (3, 16, 16, 3) and np.isfinite(gradients).all()
     assert client.get(view["files"]["radiance.png"], headers=BOB).status_code == 404
     assert client.get(f"/v1/jobs/{job_id}/views/{view['id']}/secret.txt", headers=ALICE).status_code == 422
+    assert view["warm"] is False                   # the first view started the job's view child
     bad = client.post(f"/v1/jobs/{job_id}/views", json={**CAMERA, "up": [0.3, 0.2, 3.0]}, headers=ALICE)
     assert bad.status_code == 422 and "parallel" in bad.text
+    # the warm child answered the bad camera and lives on: the next view reuses it, inline, nothing stored
+    moved = {**CAMERA, "origin": [-0.3, 0.2, 3.0], "inline": True}
+    inline = client.post(f"/v1/jobs/{job_id}/views", json=moved, headers=ALICE)
+    assert inline.status_code == 201, inline.text
+    inline = inline.json()
+    assert inline["warm"] is True and inline["files"] == {}
+    assert set(inline["images"]) == {"radiance.png", "gradient-0.png", "gradient-1.png", "gradient-2.png"}
+    png = __import__("base64").b64decode(inline["images"]["gradient-1.png"].split(",", 1)[1])
+    assert png.startswith(b"\x89PNG")
+    assert inline["images"]["gradient-1.png"] != view_png(client, view["files"]["gradient-1.png"])
 
     # warm starts from this job: never for another key, never with other parameter keys
     warm = small_job("ndrf-lhs", iterations=1, warm_start={"job": job_id})
@@ -77,6 +88,10 @@ def test_a_view_of_a_trained_job_names_its_files_and_only_its_owner_reaches_it(c
              "targets": {"synthetic": {"values": {"green.reflectance.value": [0.1, 0.5, 0.1]}, "spp": 16}}}
     refused = client.post("/v1/jobs", json=other, headers=ALICE)
     assert refused.status_code == 422 and "other parameter keys" in refused.text
+
+
+def view_png(client, url: str) -> str:
+    return "data:image/png;base64," + __import__("base64").b64encode(client.get(url, headers=ALICE).content).decode()
 
 
 def _fake_view(monkeypatch, tmp_path):
@@ -101,7 +116,8 @@ def test_a_view_writes_every_file_it_names(monkeypatch, tmp_path):
     from services.settings import Limits
 
     files, arrays = _fake_view(monkeypatch, tmp_path)
-    view_id, names, _ = create_view(files, ViewRequest(sensor=0, prb_spp=4), Limits())
+    view_id, written, _ = create_view(files, ViewRequest(sensor=0, prb_spp=4), Limits())
+    names = sorted(written)
     assert {"radiance.npy", "radiance.png", "gradients.npy", "prb.npy", "view.json"} <= set(names)
     assert {f"gradient-{p}.png" for p in range(3)} | {f"prb-{p}.png" for p in range(3)} <= set(names)
     for name in names:

@@ -5,7 +5,6 @@ scheduler that died half-way through an admission."""
 
 from __future__ import annotations
 
-import threading
 import time
 
 import pytest
@@ -19,45 +18,9 @@ from services.experiments.state import ExperimentConflict
 from services.jobs.service import JobService
 from services.queue.local import LocalEventBus, LocalJobQueue
 from services.settings import Limits
-from services.store.job import JobFiles
 from services.store.local import FolderStore
+from tests.support.experiments import FakeWorker
 from tests.support.service import small_job, wait_until
-
-
-class FakeWorker:
-    """Leases a job, runs it for ``hold`` seconds (checking cancel), fails it when ``fails(spec)``."""
-
-    def __init__(self, service: JobService, hold: float, fails=lambda spec: False):
-        self.service, self.hold, self.fails = service, hold, fails
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self.work, daemon=True)
-        self.thread.start()
-
-    def work(self):
-        states = self.service.states
-        while not self.stop.is_set():
-            lease = self.service.queue.lease("fake", 0.05)
-            if lease is None:
-                continue
-            record = states.get(lease.job_id)
-            if record.status in FINISHED:
-                self.service.queue.ack(lease)
-                continue
-            if record.cancel_requested:
-                states.transition(lease.job_id, JobStatus.CANCELED)
-                self.service.queue.ack(lease)
-                continue
-            states.transition(lease.job_id, JobStatus.RUNNING, attempt="fake#1")
-            end = time.monotonic() + self.hold
-            while time.monotonic() < end and not states.get(lease.job_id).cancel_requested:
-                time.sleep(0.01)
-            spec = JobSpec.model_validate(JobFiles(self.service.store, lease.job_id).read(JobFiles.SPEC))
-            if states.get(lease.job_id).cancel_requested:
-                final = JobStatus.CANCELED
-            else:
-                final = JobStatus.FAILED if self.fails(spec) else JobStatus.SUCCEEDED
-            states.transition(lease.job_id, final, error="boom" if final is JobStatus.FAILED else None)
-            self.service.queue.ack(lease)
 
 
 @pytest.fixture

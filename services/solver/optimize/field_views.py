@@ -39,7 +39,7 @@ from services.solver.estimators.methods import Fields, make_method
 from services.solver.estimators.problem import Problem
 from services.solver.estimators.render import PathDepth
 from services.solver.optimize.setup import Prepared, check, needs_effect_plan, plan_for
-from services.solver.scene.cameras import moved_sensor, perspective, with_cameras
+from services.solver.scene.cameras import moved_sensor, perspective, sensor_pose, with_cameras
 from services.solver.scene.facts import probe_scene
 from services.solver.scene.load import LoadedScene
 from services.solver.scene.params import ParameterSet
@@ -151,7 +151,9 @@ def camera_for(loaded: LoadedScene, request: ViewRequest, default: tuple[int, in
             raise ValueError(f"sensor {request.sensor} does not exist; the scene has {loaded.sensor_count} sensor(s)")
         width, height = request.resolution or loaded.resolution(request.sensor)
         camera = moved_sensor(loaded, request.sensor, request.offset, width, height)
-        return camera, {"sensor": request.sensor, "offset": list(request.offset), "resolution": [width, height]}
+        pose = sensor_pose(loaded, request.sensor, request.offset)
+        return camera, {"sensor": request.sensor, "offset": list(request.offset), "resolution": [width, height],
+                        **pose}
     assert request.origin is not None and request.target is not None  # the schema requires a camera
     width, height = request.resolution or default or loaded.resolution(0)
     camera = perspective(request.origin, request.target, request.up, request.fov, width, height)

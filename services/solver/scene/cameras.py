@@ -60,6 +60,25 @@ def moved_sensor(loaded: LoadedScene, index: int, offset, width: int | None = No
                          "film": _film(width or w, height or h)})
 
 
+def sensor_pose(loaded: LoadedScene, index: int, offset=(0.0, 0.0, 0.0)) -> dict:
+    """The sensor ``index`` (moved by ``offset``) as a free camera: ``origin``, ``target``, ``up``
+    (world units, 3 each) and ``fov``. A sensor stores a direction, not a target point: the
+    target is the point of its optical axis nearest the scene's bounding-box centre (at least
+    1e-3 in front of the camera), the point an orbit viewer turns about."""
+    sensor = loaded.sensor(index)
+    matrix = np.asarray(sensor.world_transform().matrix, np.float64).reshape(4, 4)
+    origin = matrix[:3, 3] + np.asarray(offset, np.float64).reshape(3)
+    forward = matrix[:3, 2] / np.linalg.norm(matrix[:3, 2])
+    up = matrix[:3, 1] / np.linalg.norm(matrix[:3, 1])
+    box = loaded.scene.bbox()
+    centre = (np.asarray(box.min, np.float64).reshape(3) + np.asarray(box.max, np.float64).reshape(3)) / 2
+    distance = max(float(np.dot(centre - origin, forward)), 1e-3)
+    values = mi.traverse(sensor)
+    fov = float(np.asarray(values["x_fov"]).reshape(-1)[0]) if "x_fov" in values.keys() else 40.0  # noqa: SIM118
+    return {"origin": origin.tolist(), "target": (origin + distance * forward).tolist(), "up": up.tolist(),
+            "fov": fov}
+
+
 def with_cameras(loaded: LoadedScene, cameras: list[mi.Sensor]) -> LoadedScene:
     """The scene of ``loaded`` with ``cameras`` appended to its sensors (the same objects: module
     docstring). Raises ``ValueError`` if a parameter key of the original is missing afterwards."""

@@ -5,6 +5,7 @@ import { FINISHED, authUrl, getJSON, postJSON, request, subscribe } from "../api
 import { PALETTE, legend, lineChart, stackedBars } from "../charts.js";
 import { clear, fmtDuration, fmtNum, h, problemText, statusBadge } from "../dom.js";
 import { imagesPanel } from "./job-images.js";
+import { orbitPanel } from "./job-orbit.js";
 import { currentValues, parametersPanel } from "./job-parameters.js";
 import { planView } from "./plan.js";
 
@@ -50,6 +51,7 @@ export function jobView(root, jobId) {
   const timeChart = h("div.chart", { dataset: { testid: "timing-chart" } });
   const parameters = parametersPanel();
   const images = imagesPanel(jobId);
+  const orbitViewer = orbitPanel(jobId);
   const plan = h("div.plan-body");
   const downloads = h("ul.downloads", { dataset: { testid: "downloads" } });
 
@@ -68,6 +70,7 @@ export function jobView(root, jobId) {
         card("Parameters", "parameters-card", parameters.element),
         card("Downloads", "downloads-card", downloads))),
     images.element,
+    orbitViewer.element,
     card("Plan", "plan-card", plan));
 
   // --------------------------------------------------------------------- data

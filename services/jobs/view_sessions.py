@@ -1,0 +1,177 @@
+"""Warm view children: one sandboxed child per (job, checkpoint) kept for a short idle time, so
+that an orbit viewer's next view pays neither the child's start (Python, Mitsuba, torch), nor the
+scene's load, nor the checkpoint's restore, nor compiling Dr.Jit's kernels again.
+
+The child is the same sandbox as a one-off view (``services.jobs.child`` mode ``views``: no
+network, a read-only filesystem but its work folder, memory and CPU limits); the API process
+still never loads a scene. It restores the checkpoint once, then answers one ``view`` frame at a
+time until its stdin closes. A session is keyed by the job and the SHA-256 of the checkpoint's
+bytes: a running job's newer checkpoint starts a new session (the older one of that job is
+closed). Sessions idle for ``keep_seconds`` are closed by a reaper thread; at most ``most``
+sessions live at once (the least recently used one is closed first); a session older than
+``limits.view_seconds`` x 4 is closed at its next use (its CPU limit grows with each view). A
+child that fails or times out is killed and its session dropped; the request fails as a one-off
+view would.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import logging
+import queue
+import shutil
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+from schemas.job import JobSpec
+from schemas.views import ViewRequest
+from services.jobs.frames import FrameError, read_frame, start_frame, write_frame
+from services.jobs.isolation import Child, ChildFailed, ChildLimits
+from services.jobs.preflight import checks_folder, upload_limits
+from services.settings import Limits
+from services.uploads.staging import stage_scene
+
+log = logging.getLogger(__name__)
+
+
+class ViewSession:
+    """One warm child for one job's checkpoint; :meth:`view` one request at a time."""
+
+    def __init__(self, job_id: str, digest: str, spec: JobSpec, checkpoint: bytes, limits: Limits):
+        self.job_id, self.digest = job_id, digest
+        self.wall = limits.view_seconds
+        self.started = self.used = time.monotonic()
+        self.lock = threading.Lock()
+        self.folder = Path(tempfile.mkdtemp(prefix="ndrf-views-", dir=checks_folder()))
+        self.frames: queue.Queue = queue.Queue()
+        try:
+            scene_file = stage_scene(spec.scene, self.folder / "scene", upload_limits(limits))
+            (self.folder / "latest.pt").write_bytes(checkpoint)
+            lifetime = ChildLimits(memory_bytes=limits.child_memory_bytes, cpu_seconds=int(limits.view_seconds) * 8,
+                                   wall_seconds=limits.view_seconds)
+            self.child = Child("views", lifetime, self.folder, label=f"views-{job_id}")
+        except BaseException:
+            shutil.rmtree(self.folder, ignore_errors=True)
+            raise
+        start = {"spec": spec.model_dump(mode="json"), "scene_file": str(scene_file) if scene_file else None,
+                 "checkpoint_file": str(self.folder / "latest.pt")}
+        threading.Thread(target=self._read, name=f"views-{job_id}", daemon=True).start()
+        with contextlib.suppress(BrokenPipeError):   # it died at once: the first view says why
+            write_frame(self.child.stdin, "start", *start_frame(start))
+
+    def _read(self) -> None:
+        while True:
+            try:
+                frame = read_frame(self.child.stdout)
+            except (FrameError, OSError) as exc:
+                frame = None
+                log.info("view child of job %s: %s", self.job_id, exc)
+            if frame is None:
+                self.frames.put(None)
+                return
+            if frame[0] != "ready":
+                self.frames.put(frame)
+
+    def alive(self) -> bool:
+        return self.child.proc.poll() is None
+
+    def view(self, request: ViewRequest) -> tuple[str, dict, dict[str, bytes]]:
+        """The child's answer to ``request``: ``(kind, meta, blobs)``; :class:`ChildFailed` (the
+        session is then dead) when it died or took longer than ``view_seconds``."""
+        with self.lock:
+            self.used = time.monotonic()
+            try:
+                write_frame(self.child.stdin, "view", {"request": request.model_dump(mode="json")})
+                frame = self.frames.get(timeout=self.wall)
+            except (BrokenPipeError, OSError):
+                frame = None
+            except queue.Empty:
+                self.close()
+                raise ChildFailed(self.child.describe_exit("the view", timed_out=True)) from None
+            finally:
+                self.used = time.monotonic()
+            if frame is None:
+                self.close()
+                raise ChildFailed(self.child.describe_exit("the view"))
+            return frame
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self.child.stdin.close()
+        self.child.kill()
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
+class ViewSessions:
+    """The warm view children of one API process."""
+
+    def __init__(self, keep_seconds: float = 60.0, most: int = 2):
+        self.keep_seconds, self.most = keep_seconds, most
+        self.sessions: dict[tuple[str, str], ViewSession] = {}
+        self.lock = threading.Lock()
+        self.stopping = threading.Event()
+        self._reaper: threading.Thread | None = None
+
+    @property
+    def enabled(self) -> bool:
+        return self.keep_seconds > 0 and self.most > 0
+
+    def session(self, job_id: str, spec: JobSpec, checkpoint: bytes, limits: Limits) -> tuple[ViewSession, bool]:
+        """The warm session of this job's checkpoint, started if needed; ``(session, started)``."""
+        digest = hashlib.sha256(checkpoint).hexdigest()
+        key = (job_id, digest)
+        closing: list[ViewSession] = []
+        with self.lock:
+            current = self.sessions.get(key)
+            if current is not None and current.alive() and time.monotonic() - current.started < 4 * current.wall:
+                return current, False
+            if current is not None:
+                closing.append(self.sessions.pop(key))
+            closing += [self.sessions.pop(k) for k in list(self.sessions) if k[0] == job_id]   # older checkpoints
+            while len(self.sessions) >= self.most:
+                oldest = min(self.sessions, key=lambda k: self.sessions[k].used)
+                closing.append(self.sessions.pop(oldest))
+        for old in closing:
+            old.close()
+        fresh = ViewSession(job_id, digest, spec, checkpoint, limits)
+        with self.lock:
+            other = self.sessions.get(key)
+            if other is None or not other.alive():
+                self.sessions[key] = fresh
+            if self._reaper is None:
+                self._reaper = threading.Thread(target=self._reap, name="view-sessions-reaper", daemon=True)
+                self._reaper.start()
+        if other is not None and other.alive():   # another request started one meanwhile: use that one
+            fresh.close()
+            return other, True
+        return fresh, True
+
+    def drop(self, session: ViewSession) -> None:
+        with self.lock:
+            if self.sessions.get((session.job_id, session.digest)) is session:
+                del self.sessions[(session.job_id, session.digest)]
+        session.close()
+
+    def _reap(self) -> None:
+        while not self.stopping.wait(min(5.0, self.keep_seconds / 2)):
+            now = time.monotonic()
+            closing = []
+            with self.lock:
+                for key, session in list(self.sessions.items()):
+                    if now - session.used > self.keep_seconds and session.lock.acquire(blocking=False):
+                        closing.append(self.sessions.pop(key))
+            for session in closing:   # a view that waited on it meanwhile gets a fresh session (views.py)
+                log.info("view child of job %s idle for %.0f s: closed", session.job_id, self.keep_seconds)
+                session.close()
+                session.lock.release()
+
+    def close(self) -> None:
+        self.stopping.set()
+        with self.lock:
+            closing = list(self.sessions.values())
+            self.sessions.clear()
+        for session in closing:
+            session.close()
