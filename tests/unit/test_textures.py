@@ -225,7 +225,7 @@ def test_auto_gives_a_texture_job_every_view_and_16_spp_unless_set():
     from services.solver.estimators.layout import DerivativeLayout
     from services.solver.optimize.recipe import TEXTURE_SPP, choose_recipe
 
-    problem = SimpleNamespace(layout=DerivativeLayout.by_component([48]),
+    problem = SimpleNamespace(layout=DerivativeLayout.by_component([48]), plan=None,
                               parameters=SimpleNamespace(has_textures=True, n=48))
     recipe = choose_recipe(_job(), problem, 4)   # type: ignore[arg-type]
     assert (recipe.method, recipe.optimizer, recipe.views, recipe.spp, recipe.gradient_spp) == (

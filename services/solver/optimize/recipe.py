@@ -164,7 +164,8 @@ def choose_recipe(spec: JobSpec, problem: Problem, sensors: int,
         recipe.adaptive_views = grows
     if problem.parameters.has_textures and spec.views_per_iteration == "auto":
         texture_batch(spec, recipe, sensors)
-    elif (method == Method.PRB and not {"spp", "gradient_spp"} & spec.render.model_fields_set
+    elif (method == Method.PRB and not problem.parameters.has_textures
+          and not {"spp", "gradient_spp"} & spec.render.model_fields_set
           and indirect_only(problem, direct)):
         recipe.spp = recipe.gradient_spp = INDIRECT_SPP
         recipe.first_size = recipe.views * INDIRECT_SPP
