@@ -86,6 +86,28 @@ def problem(scene: str, keys: list[str], resolution=(64, 64), method: str | None
     return prob
 
 
+def loop_rows(job: dict, run) -> tuple[dict, int]:
+    """``run(prepared)`` on the job prepared for :mod:`bench.mitsuba_loop`, with its scene freed
+    before this returns: returns ``(run's result, number of target views)``.
+
+    Dr.Jit traces a virtual call (a BSDF's, a shape's) over every live instance of its class, so a
+    second scene alive in the process makes every render of the first slower: about 20% per
+    ``prb`` iteration on room-open-8 (``python -m bench.prb_iteration``'s docstring). The product
+    runs one scene per process (a child per job); a bench that kept the loop's scene alive while
+    the product runs would charge the product for the bench's own scene."""
+    import gc
+
+    from schemas.job import JobSpec
+    from services.solver.optimize.setup import prepare
+
+    prepared = prepare(JobSpec.model_validate(job))
+    try:
+        return run(prepared), len(prepared.targets)
+    finally:
+        del prepared
+        gc.collect()
+
+
 def markdown_table(header: list[str], rows: list[list]) -> str:
     def cell(v):
         if isinstance(v, float):

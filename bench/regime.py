@@ -17,6 +17,9 @@ untimed for two iterations first, so that no row pays Dr.Jit's kernel compilatio
 not. Reported: seconds per iteration (median), when the largest parameter error first falls below
 ``--target-error`` and from when it stays below, the final error, and the ratio of each row's time
 to the best loop's.
+
+One scene at a time: the loop's prepared scene is freed before the product's rows run
+(:func:`bench.common.loop_rows`), as each product run frees its own.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import chosen, machine, markdown_table, write_markdown
+from bench.common import chosen, loop_rows, machine, markdown_table, write_markdown
 from bench.mitsuba_loop import best, grid, run_grid
 
 log = logging.getLogger(__name__)
@@ -67,10 +70,14 @@ def merge(base: dict, change: dict) -> dict:
 
 
 def run_product(job: dict, target_error: float, budget: float | None = None, iterations: int | None = None) -> dict:
-    """One job through the product's loop; the error curve on the clock of the module docstring."""
+    """One job through the product's loop; the error curve on the clock of the module docstring.
+    The run's scene is freed before this returns (:func:`bench.common.loop_rows`)."""
+    import gc
+
     from schemas.job import JobSpec
     from services.jobs.local import run_local
 
+    gc.collect()
     if iterations is not None:
         job = dict(job, iterations=iterations)
     events: list[tuple[float, dict]] = []
@@ -85,6 +92,7 @@ def run_product(job: dict, target_error: float, budget: float | None = None, ite
 
         summary = run_local(JobSpec.model_validate(job), Path(tmp) / "job", on_event=on_event, should_stop=stop)
         plan = json.loads((Path(tmp) / "job" / "plan.json").read_text())
+    gc.collect()
     planned = next(t for t, e in events if e["type"] == "plan")
     decided = plan["prepared_seconds"]["plan"] + plan["prepared_seconds"].get("recipe", 0.0)
     curve = [{"iteration": e["iteration"], "seconds": decided + t - planned, "error": e["parameter_error"],
@@ -108,14 +116,13 @@ def race(job: dict, variants: list[str] | dict[str, dict], *, target_error: floa
          loop_spp: list[int], loop_rr: list[int | None], loop_views: list[int | None]) -> dict:
     """The loop's grid and the product's variants on ``job`` (names of :data:`VARIANTS`, or rows
     with their own changes); results by row name."""
-    from schemas.job import JobSpec
-    from services.solver.optimize.setup import prepare
-
     base = default_job(job)
-    prepared = prepare(JobSpec.model_validate(base))
-    sensors = len(prepared.targets)
-    views = [v for v in loop_views if v is None or v < sensors] or [None]
-    rows = run_grid(prepared, grid(loop_spp, loop_rr, views), target_error=target_error, budget=budget)
+
+    def loop_grid(prepared) -> dict[str, dict]:
+        views = [v for v in loop_views if v is None or v < len(prepared.targets)] or [None]
+        return run_grid(prepared, grid(loop_spp, loop_rr, views), target_error=target_error, budget=budget)
+
+    rows, _ = loop_rows(base, loop_grid)   # the loop's scene is freed before the product's runs
     changes = variants if isinstance(variants, dict) else {name: VARIANTS[name] for name in variants}
     for name, change in changes.items():
         variant = merge(base, change)

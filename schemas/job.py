@@ -147,6 +147,13 @@ class RenderSpec(_Strict):
                              "samples per pixel (geometry is fixed) and let ndrf-lhs query dL_theta there every "
                              "iteration, contracting dz/dy per ray; 'fresh': new camera samples every iteration.")
 
+    freeze: bool = Field(
+        True, description="Replay prb's differentiable render from recorded kernels (Dr.Jit's dr.freeze): the first "
+                          "iteration of each view records the render, its loss and its adjoint pass, later ones run "
+                          "them with the new parameters and seed without tracing them again in Python (about a third "
+                          "of a 1-spp iteration on a CPU; bench.prb_iteration). False traces every iteration, as "
+                          "Mitsuba's tutorial loop does.")
+
     @field_validator("resolution")
     @classmethod
     def _positive(cls, resolution):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -50,15 +51,29 @@ class ImageLoss:
     def device(self, image):
         """``(z, dz/dy, non_finite)`` for a Dr.Jit ``(H, W, 3)`` image: unevaluated Dr.Jit values,
         ``dz/dy`` detached (the weights of the adjoint pass, Eq. 10)."""
-        import drjit as dr
+        return device_loss(self.kind, image, self.device_target)
+
+    @property
+    def device_target(self):
+        """The target as a Dr.Jit ``TensorXf`` ``(H, W, 3)``, made on first use."""
         import mitsuba as mi
 
         if self._device_target is None:
             self._device_target = mi.TensorXf(self.target)
-        y = dr.detach(image)
-        finite = dr.isfinite(y)
-        diff = dr.select(finite, y, 0.0) - self._device_target
-        n = float(self.target.size)
-        if self.kind == "l2":
-            return dr.sum(dr.square(diff), axis=None) / n, diff * (2.0 / n), dr.count(~finite, axis=None)
-        return dr.sum(dr.abs(diff), axis=None) / n, dr.sign(diff) / n, dr.count(~finite, axis=None)
+        return self._device_target
+
+
+def device_loss(kind: str, image, target):
+    """:func:`image_loss` in Dr.Jit: ``(z, dz/dy, non_finite)`` for the ``(H, W, 3)`` tensors
+    ``image`` and ``target``, unevaluated; ``dz/dy`` is detached and non-finite pixels of ``image``
+    count as 0 (their number is ``non_finite``). Pure Dr.Jit, so it may run inside a frozen
+    function (:mod:`services.solver.estimators.methods.prb`)."""
+    import drjit as dr
+
+    y = dr.detach(image)
+    finite = dr.isfinite(y)
+    diff = dr.select(finite, y, 0.0) - target
+    n = float(math.prod(target.shape))
+    if kind == "l2":
+        return dr.sum(dr.square(diff), axis=None) / n, diff * (2.0 / n), dr.count(~finite, axis=None)
+    return dr.sum(dr.abs(diff), axis=None) / n, dr.sign(diff) / n, dr.count(~finite, axis=None)

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 from schemas.methods import Method
 from services.solver.estimators.methods import GradientMethod, make_method
+from services.solver.estimators.methods.prb import Prb
 from services.solver.fields.field import NeuralField
 from services.solver.optimize.setup import Prepared, plan_for
 from services.solver.training.trainer import FieldTrainer, trainer_for
@@ -33,6 +34,8 @@ def build(prepared: Prepared, name: str, jacobian: str = "method") -> Built:
     hybrid = jacobian == "differential-field" and name != Method.NDRF_LHS
     plan_for(prepared, str(Method.NDRF_LHS) if hybrid else name, jacobian)
     method = make_method(name, prepared.problem.plan, prepared.depth)
+    if isinstance(method, Prb):
+        method.freeze = spec.render.freeze
     if spec.training.head is not None:  # the many-parameter head (checked by setup.check: ndrf-rhs, first order)
         from services.solver.estimators.methods.head import NdrfHead
 

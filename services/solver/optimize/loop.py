@@ -263,8 +263,9 @@ class InverseRenderingRun:
         loss, dz_dp, candidates, jacobians, seeds = 0.0, np.zeros(n), {}, {}, {}
         for sensor in batch.sensors:
             seed = derive_seed(spec.seed, "iteration", k, sensor)
-            loss_of = state.losses.setdefault(sensor, ImageLoss(spec.loss, prepared.targets[sensor],
-                                                                problem.count_sanitized))
+            if sensor not in state.losses:
+                state.losses[sensor] = ImageLoss(spec.loss, prepared.targets[sensor], problem.count_sanitized)
+            loss_of = state.losses[sensor]
 
             if sensor in measured and built.jacobian is None:
                 candidate, z, g, jacobians[sensor] = method.candidate_gradient_and_images(

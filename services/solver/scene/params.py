@@ -62,8 +62,12 @@ def _as_numpy(value) -> np.ndarray:
 
 
 def _like(template, flat: np.ndarray):
-    """A Dr.Jit value of the same type and shape as ``template`` holding ``flat``."""
-    return type(template)(np.asarray(flat, dtype=np.float32).reshape(dr.shape(template)))
+    """A Dr.Jit value of the same type and shape as ``template`` holding ``flat``, opaque: a
+    one-element array would otherwise be a literal, a constant of the kernels that read it, and
+    a new value a new kernel (or a new recording of a frozen render)."""
+    value = type(template)(np.asarray(flat, dtype=np.float32).reshape(dr.shape(template)))
+    dr.make_opaque(value)
+    return value
 
 
 def _owner(params: mi.SceneParameters, key: str):

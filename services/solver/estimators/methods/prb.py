@@ -7,13 +7,26 @@ in the camera-hit methods: the same parameters are optimizable.
 Three entry points, each one pass per spp-pass over the film:
 
 ``candidate_and_gradient``  one differentiable render: its primal is the candidate, one adjoint
-                            pass gives ``dz/dp`` whatever ``P`` (what an Adam iteration costs)
+                            pass gives ``dz/dp`` whatever ``P`` (what an Adam iteration costs);
+                            frozen (below)
 ``images``                  the Jacobian ``dI/dp`` ``(P, H, W, 3)`` by forward mode, one render per
                             *group* of scalars that change distinct RGB channels (an RGB albedo's
                             three components change one channel each: one render for the three)
 ``candidate_gradient_and_images``  what a second-order iteration needs: the candidate from a
                             primal render, the Jacobian from independent samples, and ``dz/dp =
                             Σ dz/dy · J`` contracted from them (unbiased, no adjoint pass)
+
+Frozen. Mitsuba's tutorial loop re-traces ``prb`` in Python at every iteration: the path loop's
+body, the BSDF and emitter calls, the adjoint replay. On a CPU that tracing is a third of a 1-spp
+iteration. ``candidate_and_gradient`` runs its render, loss and adjoint pass
+(:func:`differentiate`), and ``images`` each forward-mode render (:func:`tangent_render`), through
+``dr.freeze``: the first calls of each view (and spp, and group of scalars) record the kernels,
+later calls replay them with the current parameter values, seed and target as inputs.
+The replay computes what the traced call computes (``tests/unit/test_prb_frozen.py`` compares
+them); ``render.freeze: false`` traces every call instead. Jobs with a bitmap texture are traced:
+in Dr.Jit 1.5 the gradient from the texture to its ``data`` is lost inside a frozen function (the
+texture is built from the data by ``params.update()``, outside it, and the replay's inputs do not
+keep that edge): the frozen gradient of ``textured-floor``'s texels came out zero.
 """
 
 from __future__ import annotations
@@ -23,7 +36,7 @@ import mitsuba as mi
 import numpy as np
 
 from schemas.methods import Method
-from services.solver.estimators.losses import ImageLoss
+from services.solver.estimators.losses import ImageLoss, device_loss
 from services.solver.estimators.methods.base import Fields, GradientMethod, Loss, contract
 from services.solver.estimators.problem import Problem
 from services.solver.estimators.render import PathDepth, opaque_seed, render
@@ -50,6 +63,46 @@ def channel_groups(channels: list[tuple[int, ...]]) -> list[list[int]]:
     return groups
 
 
+#: Most recordings a frozen render keeps (one per view and sample count); beyond it the least
+#: recently used is dropped and recorded again when needed.
+RECORDINGS = 64
+
+
+def differentiate(scene, params, target, seed, *, sensor: int, spp: int, spp_grad: int, integrator, keys: tuple[str, ...],
+                  kind: str):
+    """One differentiable render of ``sensor`` and the adjoint pass of its loss (Eq. 10), in pure
+    Dr.Jit (so that ``dr.freeze`` can record it). ``target`` ``(H, W, 3)``; ``seed`` an opaque
+    ``UInt32``: the primal uses it, the adjoint pass Mitsuba's decorrelated ``sample_tea_32(seed,
+    1)``. Returns ``(image (H, W, C) detached, z, non-finite pixel count, [dz/dp of each key])``
+    and leaves the parameters' gradients cleared. The parameters of ``keys`` must track gradients."""
+    image = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, spp_grad=spp_grad, seed=seed)
+    rgb = image[..., :3]
+    z, dz_dy, bad = device_loss(kind, rgb, target)
+    dr.backward(dr.sum(rgb * dz_dy, axis=None))
+    grads = [dr.grad(params[key]) for key in keys]
+    for key in keys:
+        dr.clear_grad(params[key])
+    return dr.detach(image), z, bad, grads
+
+
+def tangent_render(scene, params, tangents: dict, seed, *, sensor: int, spp: int, integrator):
+    """The forward-mode derivative of the render of ``sensor`` along ``tangents`` (``{key:
+    value-shaped tangent}``): ``Σ_i t_i dI/dp_i`` ``(H, W, C)``, in pure Dr.Jit (so that
+    ``dr.freeze`` can record it). The tangents are first pushed into values derived from the
+    parameters (a bitmap's texture), which the render's own isolated traversal would not reach.
+    Leaves the parameters' gradients cleared; the parameters must track gradients."""
+    for key, tangent in tangents.items():
+        dr.set_grad(params[key], tangent)
+    dr.enqueue(dr.ADMode.Forward, *[params[key] for key in tangents])
+    dr.traverse(dr.ADMode.Forward, dr.ADFlag.ClearEdges)
+    image = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seed)
+    dr.forward_to(image)
+    grad = dr.grad(image)
+    for key in tangents:
+        dr.clear_grad(params[key])
+    return grad
+
+
 class Prb(GradientMethod):
     """``loss_gradient``: one adjoint (reverse-mode) render per pass, whatever the number of
     scalars ``P``; ``images``: one forward-mode render per channel group and pass."""
@@ -57,10 +110,14 @@ class Prb(GradientMethod):
     name = Method.PRB
     uses = frozenset()
 
-    def __init__(self, *, depth: PathDepth, radiance: bool = False, differential: bool = False):
+    def __init__(self, *, depth: PathDepth, radiance: bool = False, differential: bool = False, freeze: bool = True):
         super().__init__(radiance=radiance, differential=differential)
         self.depth = depth
         self.integrator = depth.integrator("prb")
+        #: whether ``candidate_and_gradient`` replays recorded kernels (module docstring)
+        self.freeze = freeze
+        self._frozen = dr.freeze(differentiate, limit=RECORDINGS, warn_after=RECORDINGS)
+        self._frozen_tangent = dr.freeze(tangent_render, limit=RECORDINGS, warn_after=RECORDINGS)
 
     @classmethod
     def from_plan(cls, plan, depth):
@@ -87,22 +144,16 @@ class Prb(GradientMethod):
     def _forward(self, problem: Problem, scalars: list[int], sensor: int, spp: int, seed: int) -> np.ndarray:
         """``Σ_i dI/dp_i`` over ``scalars`` by one forward-mode render, ``(H, W, 3)`` float64."""
         params = problem.parameters
-        tangents = params.tangents(scalars)
+        step = self._frozen_tangent if self._freezes(params) else tangent_render
         with params.tracking():  # re-creates the edges from the parameters to what derives from them
-            values = [params.params[key] for key in tangents]
-            for key, tangent in tangents.items():
-                dr.set_grad(params.params[key], tangent)
-            # Propagate into derived values (a bitmap's texture) before rendering: the render's own
-            # traversal is isolated and would not cross that edge.
-            dr.enqueue(dr.ADMode.Forward, *values)
-            dr.traverse(dr.ADMode.Forward, dr.ADFlag.ClearEdges)
-            image = mi.render(problem.scene.scene, params.params, sensor=sensor, integrator=self.integrator,
-                              spp=spp, seed=opaque_seed(seed))
-            dr.forward_to(image)
-            out = np.array(dr.grad(image), dtype=np.float64)[..., :3]
-            for key in tangents:
-                dr.clear_grad(params.params[key])
-        return out
+            image = step(problem.scene.scene, params.params, params.tangents(scalars), opaque_seed(seed),
+                         sensor=sensor, spp=spp, integrator=self.integrator)
+            return np.array(image, dtype=np.float64)[..., :3]
+
+    def _freezes(self, params) -> bool:
+        """Whether this job's renders replay recorded kernels: ``freeze``, and no texture parameter
+        (its gradient does not survive a frozen function; module docstring)."""
+        return self.freeze and not any(info.texture for info in params.infos)
 
     def candidate_gradient_and_images(self, problem: Problem, fields: Fields, loss: Loss, *, spp: int,
                                       gradient_spp: int, seed: int, depth: PathDepth,
@@ -129,29 +180,26 @@ class Prb(GradientMethod):
         if max(passes_for(width * height, spp)[0], passes_for(width * height, gradient_spp)[0]) > 1:
             return super().candidate_and_gradient(problem, fields, loss, spp=spp, gradient_spp=gradient_spp,
                                                   seed=seed, depth=depth, sensor=sensor)
-        with params.tracking():
-            image = mi.render(problem.scene.scene, params.params, sensor=sensor, integrator=self.integrator,
-                              spp=spp, spp_grad=gradient_spp, seed=opaque_seed(derive_seed(seed, "primal")),
-                              # opaque as the primal's: an int would be a kernel literal, a new
-                              # kernel every iteration (Mitsuba's stub says int; it takes UInt32)
-                              seed_grad=opaque_seed(derive_seed(seed, "adjoint")))  # type: ignore[arg-type]
-            if isinstance(loss, ImageLoss):
-                rgb = image[..., :3]
-                z, dz_dy, bad = loss.device(rgb)
-                dr.backward(dr.sum(rgb * dz_dy, axis=None))
-                grads = [dr.grad(params.params[key]) for key in params.keys]
-                dr.eval(image, z, bad, *grads)
-                if int(np.asarray(bad).reshape(-1)[0]):
-                    loss.sanitized(loss.WHERE, int(np.asarray(bad).reshape(-1)[0]))
+        if not isinstance(loss, ImageLoss):
+            with params.tracking():
+                image = mi.render(problem.scene.scene, params.params, sensor=sensor, integrator=self.integrator,
+                                  spp=spp, spp_grad=gradient_spp, seed=opaque_seed(derive_seed(seed, "primal")))
                 candidate = np.array(image, dtype=np.float32)[..., :3]
-                dz_dp = np.concatenate([np.asarray(g, np.float64).reshape(-1) for g in grads])
-                for key in params.keys:
-                    dr.clear_grad(params.params[key])
-                return candidate, float(np.asarray(z).reshape(-1)[0]), dz_dp
-            candidate = np.array(image, dtype=np.float32)[..., :3]
-            z, dz_dy = loss(candidate)
-            dz_dp = self._backward(params, image, dz_dy)
-        return candidate, z, dz_dp
+                z, dz_dy = loss(candidate)
+                dz_dp = self._backward(params, image, dz_dy)
+            return candidate, z, dz_dp
+        step = self._frozen if self._freezes(params) else differentiate
+        with params.tracking():
+            image, z, bad, grads = step(problem.scene.scene, params.params, loss.device_target,
+                                        opaque_seed(derive_seed(seed, "primal")), sensor=sensor, spp=spp,
+                                        spp_grad=gradient_spp, integrator=self.integrator, keys=tuple(params.keys),
+                                        kind=loss.kind)
+            dr.eval(image, z, bad, *grads)
+        if int(np.asarray(bad).reshape(-1)[0]):
+            loss.sanitized(loss.WHERE, int(np.asarray(bad).reshape(-1)[0]))
+        candidate = np.array(image, dtype=np.float32)[..., :3]
+        dz_dp = np.concatenate([np.asarray(g, np.float64).reshape(-1) for g in grads])
+        return candidate, float(np.asarray(z).reshape(-1)[0]), dz_dp
 
     @staticmethod
     def _backward(params, image, dz_dy: np.ndarray) -> np.ndarray:
