@@ -38,32 +38,36 @@ _QUOTE, _OPEN_LIST, _OPEN_OBJECT, _CLOSE_LIST, _CLOSE_OBJECT = b'"'[0], b"["[0],
 
 
 class JsonTooComplex(ValueError):
-    """A JSON body over one of the structure limits: ``limit`` names the setting."""
+    """A JSON body over one of the structure limits: ``limit`` names the setting, ``position`` is the
+    byte offset of the token that crossed it, where the scan stopped (the bytes after it are never
+    read)."""
 
-    def __init__(self, limit: str, value: int, what: str):
+    def __init__(self, limit: str, value: int, what: str, position: int | None = None):
         super().__init__(f"{what} exceeds the limit of {value} (NDRF_MAX_{limit.upper()})")
-        self.limit, self.value = limit, value
+        self.limit, self.value, self.position = limit, value, position
 
 
-def check_json(body: bytes, limits: Limits) -> None:
+def check_json(body: bytes, limits: Limits) -> int:
     """Raise :class:`JsonTooComplex` if ``body`` nests deeper than ``json_depth``, has an object of
     more than ``json_keys`` keys, an array of more than ``json_items`` items, or more than
-    ``json_tokens`` strings, containers and separators. The work is bounded by the limits, not by
-    the body's size: the scan stops at the first limit crossed. Invalid JSON is left to the parser
-    (the scan over-counts it, never under-counts)."""
+    ``json_tokens`` strings, containers and separators; else return the number of those tokens.
+    The work is bounded by the limits, not by the body's size: the scan stops at the first limit
+    crossed (the error's ``position``), and a string is one token however long. Invalid JSON is
+    left to the parser (the scan over-counts it, never under-counts)."""
     stack: list[list[int]] = []   # per open container: [is_object, entries so far]
     tokens = 0
     for match in _TOKEN.finditer(body):
-        char = body[match.start()]
+        at = match.start()
+        char = body[at]
         tokens += 1
         if tokens > limits.json_tokens:
             raise JsonTooComplex("json_tokens", limits.json_tokens, "the body's number of JSON tokens (strings, "
-                                                                   "arrays, objects and separators)")
+                                                                   "arrays, objects and separators)", at)
         if char == _QUOTE:
             continue
         if char in (_OPEN_LIST, _OPEN_OBJECT):
             if len(stack) >= limits.json_depth:
-                raise JsonTooComplex("json_depth", limits.json_depth, "the nesting depth of the JSON body")
+                raise JsonTooComplex("json_depth", limits.json_depth, "the nesting depth of the JSON body", at)
             stack.append([char == _OPEN_OBJECT, 1])
         elif char in (_CLOSE_LIST, _CLOSE_OBJECT):
             if stack:
@@ -72,9 +76,10 @@ def check_json(body: bytes, limits: Limits) -> None:
             entry = stack[-1]
             entry[1] += 1
             if entry[0] and entry[1] > limits.json_keys:
-                raise JsonTooComplex("json_keys", limits.json_keys, "the number of keys of a JSON object")
+                raise JsonTooComplex("json_keys", limits.json_keys, "the number of keys of a JSON object", at)
             if not entry[0] and entry[1] > limits.json_items:
-                raise JsonTooComplex("json_items", limits.json_items, "the number of items of a JSON array")
+                raise JsonTooComplex("json_items", limits.json_items, "the number of items of a JSON array", at)
+    return tokens
 
 
 def parse_json(body: bytes, limits: Limits) -> Any:
@@ -137,6 +142,7 @@ class GuardedRoute(APIRoute):
         try:
             document = parse_json(body, limits)
         except JsonTooComplex as exc:
+            log.info("JSON body refused at byte %s of %d: %s", exc.position, len(body), exc)
             raise ProblemError(413, "Body too complex", str(exc), slug="json-limit",
                                errors=[("(root)", str(exc))]) from None
         except (ValueError, RecursionError) as exc:   # JSONDecodeError, and numbers of too many digits

@@ -27,7 +27,7 @@ router = APIRouter(route_class=GuardedRoute, prefix="/v1/jobs/{job_id}", tags=["
                    responses={401: {"model": ProblemDetails}, 404: {"model": ProblemDetails}})
 
 Iteration = Annotated[int, PathParam(ge=0, le=10**7, description="0-based iteration index.")]
-PNG, NPY = "image/png", "application/x-npy"
+PNG, NPY, EXR = "image/png", "application/x-npy", "image/x-exr"
 CHUNK = 1 << 16
 
 
@@ -146,34 +146,37 @@ def gradients_stack(job_id: str, k: Iteration, runtime: RuntimeDep, caller: Read
     return send(files, key, NPY, f"gradient data of iteration {k}", filename=f"{job_id}-{k}-gradients.npy")
 
 
-#: ``<key>.npy|png`` or ``<key>.dz_dp.npy|png`` of a texture parameter (Mitsuba keys: letters, digits, ``_.-``).
-_TEXTURE = re.compile(r"^([A-Za-z0-9_][A-Za-z0-9_.\-]{0,255})\.(png|npy)$")
-TextureName = Annotated[str, PathParam(description="'<key>.npy' (float32 H x W x C) or '<key>.png' (preview) of a "
-                                                   "texture parameter, e.g. 'wall.reflectance.data.npy'; per "
-                                                   "iteration also '<key>.dz_dp.npy|png', its gradient.")]
+#: ``<key>.npy|exr|png`` or ``<key>.dz_dp.npy|exr|png`` of a texture parameter (Mitsuba keys: letters, digits,
+#: ``_.-``).
+_TEXTURE = re.compile(r"^([A-Za-z0-9_][A-Za-z0-9_.\-]{0,255})\.(png|npy|exr)$")
+_TEXTURE_MEDIA = {"png": PNG, "npy": NPY, "exr": EXR}
+TextureName = Annotated[str, PathParam(description="'<key>.npy' (float32 H x W x C), '<key>.exr' (the same values, "
+                                                   "OpenEXR 32-bit float) or '<key>.png' (preview) of a texture "
+                                                   "parameter, e.g. 'wall.reflectance.data.npy'; per iteration also "
+                                                   "'<key>.dz_dp.npy|exr|png', its gradient.")]
 
 
 def _texture(files: JobFiles, k: int | None, name: str):
     match = _TEXTURE.match(name)
     if match is None or ".." in name:
-        raise ProblemError(422, "Invalid request", "name must be '<texture key>.npy' or '<texture key>.png'",
-                           slug="invalid-request", errors=[("name", "expected <key>.npy or <key>.png")])
+        raise ProblemError(422, "Invalid request", "name must be '<texture key>.npy', '.exr' or '.png'",
+                           slug="invalid-request", errors=[("name", "expected <key>.npy, <key>.exr or <key>.png")])
     key = files.texture_key(k, match.group(1)) + "." + match.group(2)
     what = f"texture {match.group(1)}" + ("" if k is None else f" of iteration {k}")
     if not files.store.exists(key):
         raise _missing(what)
-    return send(files, key, PNG if match.group(2) == "png" else NPY, what,
-                filename=None if match.group(2) == "png" else name)
+    return send(files, key, _TEXTURE_MEDIA[match.group(2)], what, filename=None if match.group(2) == "png" else name)
 
 
-@router.get("/final/{name}", summary="A recovered texture", responses={200: {"content": {PNG: {}, NPY: {}}}})
+@router.get("/final/{name}", summary="A recovered texture",
+            responses={200: {"content": {PNG: {}, NPY: {}, EXR: {}}}})
 def final_texture(job_id: str, runtime: RuntimeDep, caller: ReaderDep, name: TextureName):
     """A texture parameter's recovered value (written at the end; summary.json names the files)."""
     return _texture(files_or_404(runtime, job_id, caller), None, name)
 
 
 @router.get("/iterations/{k}/textures/{name}", summary="A texture at an iteration",
-            responses={200: {"content": {PNG: {}, NPY: {}}}})
+            responses={200: {"content": {PNG: {}, NPY: {}, EXR: {}}}})
 def iteration_texture(job_id: str, k: Iteration, runtime: RuntimeDep, caller: ReaderDep, name: TextureName):
     """A texture parameter at iteration ``k`` and its gradient (written with the iteration's images)."""
     return _texture(files_or_404(runtime, job_id, caller), k, name)

@@ -18,7 +18,7 @@ import numpy as np
 from schemas.outcomes import Outcome
 from schemas.records import IterationRecord, JobStatus
 from services.jobs.state import Fenced, JobStates
-from services.store.images import gradient_png, npy_bytes, srgb_png
+from services.store.images import exr_bytes, gradient_png, npy_bytes, srgb_png
 from services.store.job import JobFiles
 
 log = logging.getLogger(__name__)
@@ -143,14 +143,15 @@ class JobWriter:
         return scales
 
     def textures(self, iteration: int | None, images: dict[str, np.ndarray]) -> None:
-        """Each texture as ``<name>.npy`` (``(H, W, C)`` float32) and a PNG preview (a value in sRGB,
-        a ``.dz_dp`` gradient through the diverging map): under ``iterations/<k>/textures/``, or
-        ``final/`` at the end (``iteration`` None)."""
+        """Each texture as ``<name>.npy`` (``(H, W, C)`` float32), the same values as ``<name>.exr``
+        (OpenEXR, 32-bit float) and a PNG preview (a value in sRGB, a ``.dz_dp`` gradient through the
+        diverging map): under ``iterations/<k>/textures/``, or ``final/`` at the end (``iteration`` None)."""
         self.guard()
         for name, image in sorted(images.items()):
             key = self.files.texture_key(iteration, name)
             image = np.asarray(image, np.float32)
             self._put(key + ".npy", npy_bytes(image), durable=iteration is None)
+            self._put(key + ".exr", exr_bytes(image), durable=iteration is None)
             rgb = np.repeat(image, 3, axis=-1) if image.shape[-1] == 1 else image
             png = gradient_png(rgb)[0] if name.endswith(".dz_dp") else srgb_png(rgb)
             self._put(key + ".png", png, durable=iteration is None)
@@ -185,17 +186,24 @@ class JobWriter:
                    "error": data.get("error"), "field": data.get("field")}
         textures = [t["key"] for t in plan.get("textures") or []]
         if textures:   # the recovered textures' files (written at the end of a run that got there)
-            summary["textures"] = {key: {ext: self.files.texture_key(None, key)[len(self.files.prefix):] + f".{ext}"
-                                         for ext in ("npy", "png")} for key in textures
+            summary["textures"] = {key: self._texture_files(key) for key in textures
                                    if self.files.store.exists(self.files.texture_key(None, key) + ".npy")}
             for key, files in summary["textures"].items():   # a synthetic job's target texture
-                if self.files.store.exists(self.files.texture_key(None, f"{key}.target") + ".npy"):
-                    files["target"] = self.files.texture_key(None, f"{key}.target")[len(self.files.prefix):] + ".npy"
+                target = self._texture_files(f"{key}.target")
+                files.update({"target" if ext == "npy" else f"target_{ext}": name for ext, name in target.items()
+                              if ext != "png"})
         if summary["final"] is not None and summary["target"] is not None and summary["final"]:
             summary["max_abs_error"] = float(np.max(np.abs(np.asarray(summary["final"]) - np.asarray(summary["target"]))))
         self.guard()
         self._put(self.files.key(JobFiles.SUMMARY), _json(summary))
         return summary
+
+    def _texture_files(self, name: str) -> dict[str, str]:
+        """``final/<name>.npy|exr|png`` by extension, relative to the job folder: those written (a job
+        resumed from an older version's files may lack the ``.exr``)."""
+        key = self.files.texture_key(None, name)
+        return {ext: key[len(self.files.prefix):] + f".{ext}" for ext in ("npy", "exr", "png")
+                if self.files.store.exists(f"{key}.{ext}")}
 
     def finish(self, outcome) -> JobStatus:
         """Record how the attempt ended: ``interrupted`` hands the job back (queued); anything

@@ -15,6 +15,13 @@ KEY = "wall.reflectance.data"
 JOB = "0123456789abcdef0123"
 
 
+def _exr_pixels(mi, data: bytes) -> np.ndarray:
+    stream = mi.MemoryStream()
+    stream.write(data)
+    stream.seek(0)
+    return np.array(mi.Bitmap(stream, mi.Bitmap.FileFormat.OpenEXR), copy=True)
+
+
 def test_texture_files_are_served(mi, tmp_path):
     from api.app import create_app
     from services.jobs.local import run_local
@@ -31,8 +38,15 @@ def test_texture_files_are_served(mi, tmp_path):
         assert value.shape == (64, 64, 3)
         assert np.array_equal(value, np.load(tmp_path / "store" / JOB / "final" / f"{KEY}.npy"))
         assert client.get(f"/v1/jobs/{JOB}/final/{KEY}.png").headers["content-type"] == "image/png"
+        exr = client.get(f"/v1/jobs/{JOB}/final/{KEY}.exr")
+        assert exr.status_code == 200 and exr.headers["content-type"] == "image/x-exr"
+        assert exr.content == (tmp_path / "store" / JOB / "final" / f"{KEY}.exr").read_bytes()
+        assert np.array_equal(_exr_pixels(mi, exr.content), value)
         gradient = client.get(f"/v1/jobs/{JOB}/iterations/1/textures/{KEY}.dz_dp.npy")
         assert gradient.status_code == 200 and np.load(io.BytesIO(gradient.content)).shape == (64, 64, 3)
+        gradient_exr = client.get(f"/v1/jobs/{JOB}/iterations/1/textures/{KEY}.dz_dp.exr")
+        assert gradient_exr.headers["content-type"] == "image/x-exr"
+        assert np.array_equal(_exr_pixels(mi, gradient_exr.content), np.load(io.BytesIO(gradient.content)))
         assert client.get(f"/v1/jobs/{JOB}/iterations/1/textures/other.npy").status_code == 404
         assert client.get(f"/v1/jobs/{JOB}/final/{KEY}.exe").status_code == 422
         public = client.get(f"/v1/jobs/{JOB}").json()

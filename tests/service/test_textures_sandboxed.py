@@ -15,6 +15,7 @@ from services.jobs.service import JobService
 from services.queue.local import LocalEventBus, LocalJobQueue
 from services.settings import Limits
 from services.store.local import FolderStore
+from services.uploads.images import ImageInfo, image_header
 
 KEY = "wall.reflectance.data"
 
@@ -32,6 +33,8 @@ def test_a_texture_job_runs_in_the_sandbox(tmp_path):
     folder = tmp_path / "store" / record.id
     summary = service.states.files(record.id).read("summary.json")
     assert summary["textures"][KEY]["npy"] == f"final/{KEY}.npy"
+    assert summary["textures"][KEY]["exr"] == f"final/{KEY}.exr"   # encoded by the host, which has no Mitsuba
+    assert image_header((folder / "final" / f"{KEY}.exr").read_bytes()) == ImageInfo("exr", 64, 64, 3)
     assert np.load(folder / "final" / f"{KEY}.npy").shape == (64, 64, 3)
     assert np.load(folder / "final" / f"{KEY}.target.npy").shape == (64, 64, 3)
     assert np.load(folder / "iterations" / "000002" / "textures" / f"{KEY}.dz_dp.npy").shape == (64, 64, 3)

@@ -32,6 +32,14 @@ def _job(**changes) -> JobSpec:
     return JobSpec.model_validate(job)
 
 
+def _read_exr(mi, path) -> np.ndarray:
+    """An ``.exr`` the job wrote, as Mitsuba's OpenEXR reader decodes it (``(H, W, C)`` float32)."""
+    bitmap = mi.Bitmap(str(path))
+    assert bitmap.component_format() == mi.Struct.Type.Float32
+    pixels = np.array(bitmap, copy=True)
+    return pixels.reshape(*pixels.shape[:2], -1)
+
+
 def test_prb_texel_gradient_matches_central_differences(mi):
     from services.solver.estimators.methods import Fields
     from services.solver.estimators.methods.prb import Prb
@@ -76,12 +84,15 @@ def test_texture_job_reports_summaries_and_files(mi, tmp_path):
     preparing = [e["what"] for e in events if e["type"] == "preparing"]   # said before the plan, not "starting"
     assert preparing == ["loading and checking the scene", "rendering 4 synthetic target(s) at 16 spp"]
     assert [e["type"] for e in events].index("plan") > [e["type"] for e in events].index("preparing")
-    assert summary["textures"][KEY] == {"npy": f"final/{KEY}.npy", "png": f"final/{KEY}.png",
-                                        "target": f"final/{KEY}.target.npy"}
+    assert summary["textures"][KEY] == {"npy": f"final/{KEY}.npy", "exr": f"final/{KEY}.exr", "png": f"final/{KEY}.png",
+                                        "target": f"final/{KEY}.target.npy", "target_exr": f"final/{KEY}.target.exr"}
     target = np.load(tmp_path / "job" / summary["textures"][KEY]["target"])
     assert np.allclose(target, true_albedo())
     final = np.load(tmp_path / "job" / summary["textures"][KEY]["npy"])
     assert final.shape == (64, 64, 3) and final.dtype == np.float32
+    for npy, exr in ((summary["textures"][KEY]["npy"], summary["textures"][KEY]["exr"]),
+                     (summary["textures"][KEY]["target"], summary["textures"][KEY]["target_exr"])):
+        assert np.array_equal(_read_exr(mi, tmp_path / "job" / exr), np.load(tmp_path / "job" / npy))
     assert not np.allclose(final, 0.5)                       # it moved from the initial grey
     plan = json.loads((tmp_path / "job" / "plan.json").read_text())
     assert plan["scalars"] == [] and plan["textures"][0]["shape"] == [64, 64, 3]
@@ -94,6 +105,8 @@ def test_texture_job_reports_summaries_and_files(mi, tmp_path):
     assert 0.0 < texture["psnr"] < 60.0 and texture["gradient_rms"] > 0.0
     written = tmp_path / "job" / "iterations" / "000002" / "textures"
     assert np.load(written / f"{KEY}.dz_dp.npy").shape == (64, 64, 3)    # the gradient is a texture
+    for name in (KEY, f"{KEY}.dz_dp"):                                       # each snapshot has its .exr
+        assert np.array_equal(_read_exr(mi, written / f"{name}.exr"), np.load(written / f"{name}.npy"))
     assert (written / f"{KEY}.png").stat().st_size > 0
     assert not list((tmp_path / "job" / "iterations" / "000002").glob("gradient*"))   # never P images
 
