@@ -86,8 +86,9 @@ def differentiate(scene, params, target, seed, *, sensor: int, spp: int, spp_gra
 
 
 def tangent_render(scene, params, tangents: dict, seed, *, sensor: int, spp: int, integrator):
-    """The forward-mode derivative of the render of ``sensor`` along ``tangents`` (``{key:
-    value-shaped tangent}``): ``Σ_i t_i dI/dp_i`` ``(H, W, C)``, in pure Dr.Jit (so that
+    """The render of ``sensor`` and its forward-mode derivative along ``tangents`` (``{key:
+    value-shaped tangent}``): ``(I, Σ_i t_i dI/dp_i)``, each ``(H, W, C)``; the primal with ``seed``,
+    the tangent with Mitsuba's decorrelated ``seed_grad``. In pure Dr.Jit (so that
     ``dr.freeze`` can record it). The tangents are first pushed into values derived from the
     parameters (a bitmap's texture), which the render's own isolated traversal would not reach.
     Leaves the parameters' gradients cleared; the parameters must track gradients."""
@@ -100,7 +101,7 @@ def tangent_render(scene, params, tangents: dict, seed, *, sensor: int, spp: int
     grad = dr.grad(image)
     for key in tangents:
         dr.clear_grad(params[key])
-    return grad
+    return dr.detach(image), grad
 
 
 class Prb(GradientMethod):
@@ -128,27 +129,39 @@ class Prb(GradientMethod):
     # ----------------------------------------------------------- Jacobian
 
     def images(self, problem: Problem, fields: Fields, *, spp: int, seed: int, sensor: int = 0) -> np.ndarray:
+        return self._jacobian(problem, spp=spp, seed=seed, sensor=sensor)[1]
+
+    def _jacobian(self, problem: Problem, *, spp: int, seed: int, sensor: int) -> tuple[np.ndarray, np.ndarray]:
+        """The forward-mode renders of :meth:`images`: ``(y (H, W, 3), J (P, H, W, 3))``, ``y`` the
+        renders' primal image. Mitsuba renders a forward-mode pass's tangent with the decorrelated
+        ``seed_grad``, so ``y`` and ``J`` share no sample; every group renders the same primal
+        samples (the same seed), so ``y`` is one ``spp`` render."""
         params, layout = problem.parameters, problem.layout
         width, height = problem.scene.resolution(sensor)
         passes, per_pass = passes_for(width * height, spp)
+        y = np.zeros((height, width, 3), np.float64)
         out = np.zeros((params.n, height, width, 3), np.float64)
-        for group in channel_groups(list(layout.channels)):
+        for g, group in enumerate(channel_groups(list(layout.channels))):
             scalars = [layout.scalars[a] for a in group]
             for k in range(passes):
-                image = self._forward(problem, scalars, sensor, per_pass, derive_seed(seed, "path", k))
+                primal, image = self._forward(problem, scalars, sensor, per_pass, derive_seed(seed, "path", k))
+                if g == 0:
+                    y += primal
                 for a, i in zip(group, scalars):
                     chans = list(layout.channels[a])
                     out[i][..., chans] += image[..., chans]
-        return (out / passes).astype(np.float32)
+        return (y / passes).astype(np.float32), (out / passes).astype(np.float32)
 
-    def _forward(self, problem: Problem, scalars: list[int], sensor: int, spp: int, seed: int) -> np.ndarray:
-        """``Σ_i dI/dp_i`` over ``scalars`` by one forward-mode render, ``(H, W, 3)`` float64."""
+    def _forward(self, problem: Problem, scalars: list[int], sensor: int, spp: int,
+                 seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """One forward-mode render: its primal image and ``Σ_i dI/dp_i`` over ``scalars``, each
+        ``(H, W, 3)`` float64."""
         params = problem.parameters
         step = self._frozen_tangent if self._freezes(params) else tangent_render
         with params.tracking():  # re-creates the edges from the parameters to what derives from them
-            image = step(problem.scene.scene, params.params, params.tangents(scalars), opaque_seed(seed),
-                         sensor=sensor, spp=spp, integrator=self.integrator)
-            return np.array(image, dtype=np.float64)[..., :3]
+            primal, tangent = step(problem.scene.scene, params.params, params.tangents(scalars), opaque_seed(seed),
+                                   sensor=sensor, spp=spp, integrator=self.integrator)
+            return np.array(primal, dtype=np.float64)[..., :3], np.array(tangent, dtype=np.float64)[..., :3]
 
     def _freezes(self, params) -> bool:
         """Whether this job's renders replay recorded kernels: ``freeze``, and no texture parameter
@@ -158,12 +171,19 @@ class Prb(GradientMethod):
     def candidate_gradient_and_images(self, problem: Problem, fields: Fields, loss: Loss, *, spp: int,
                                       gradient_spp: int, seed: int, depth: PathDepth,
                                       sensor: int = 0) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
-        """The candidate (primal ``path`` render, ``spp``), the Jacobian ``J`` (forward mode,
-        ``gradient_spp``, independent samples) and ``dz/dp = Σ_pixels dz/dy · J`` (Eq. 10): unbiased
-        for ``l2`` because ``y`` and ``J`` share no sample. No adjoint pass."""
-        candidate = render(problem, spp=spp, seed=derive_seed(seed, "candidate"), sensor=sensor, depth=depth)
+        """The candidate ``y``, the Jacobian ``J`` (forward mode, ``gradient_spp``) and ``dz/dp =
+        Σ_pixels dz/dy · J`` (Eq. 10), unbiased for ``l2`` because ``y`` and ``J`` share no sample.
+        No adjoint pass. With ``spp == gradient_spp`` the candidate is the forward-mode renders' own
+        primal image (:meth:`_jacobian`: independent of ``J``), which saves the primal render a
+        separate candidate costs (a third of the renders of a two-group Jacobian); otherwise a
+        ``path`` render at ``spp``."""
+        if spp == gradient_spp:
+            candidate, images = self._jacobian(problem, spp=gradient_spp, seed=derive_seed(seed, "jacobian"),
+                                               sensor=sensor)
+        else:
+            candidate = render(problem, spp=spp, seed=derive_seed(seed, "candidate"), sensor=sensor, depth=depth)
+            images = self.images(problem, fields, spp=gradient_spp, seed=derive_seed(seed, "jacobian"), sensor=sensor)
         z, dz_dy = loss(candidate)
-        images = self.images(problem, fields, spp=gradient_spp, seed=derive_seed(seed, "jacobian"), sensor=sensor)
         return candidate, z, contract(images, dz_dy), images
 
     # ----------------------------------------------------------- gradient
