@@ -17,6 +17,10 @@ Scene loading and target rendering are outside the clock; each setting runs once
 iterations first (kernel compilation), then from the initial values on the clock. A setting is
 the best loop of the grid when it first reaches ``--target-error`` soonest.
 
+``LoopSetting(freeze=True)`` is not the tutorial's loop: it runs each view's render, loss and
+``dr.backward`` in ``dr.freeze``, as the product does (``bench.prb_iteration`` reports it beside the
+tutorial's, for what a user who freezes their own loop would see).
+
 Grid: ``spp`` in {1, 4}, Russian roulette from depth 5 (Mitsuba's default) or off (paths then end
 at depth 64: unbounded paths need roulette to end), views per iteration in {1, 2, 4, all} (a
 single-view job has one).
@@ -47,11 +51,27 @@ class LoopSetting:
     spp: int
     rr_depth: int | None  # None: Russian roulette off
     views: int | None     # None: every view
+    freeze: bool = False  # the render, loss and backward of a view in dr.freeze (not the tutorial's)
 
     @property
     def label(self) -> str:
         rr = "off" if self.rr_depth is None else str(self.rr_depth)
-        return f"loop spp={self.spp} rr={rr} views={'all' if self.views is None else self.views}"
+        frozen = " frozen" if self.freeze else ""
+        return f"loop spp={self.spp} rr={rr} views={'all' if self.views is None else self.views}{frozen}"
+
+
+def _view_gradient(scene, params, target, seed, *, sensor: int, spp: int, integrator, keys: tuple[str, ...]):
+    """A frozen loop's view: the tutorial's render, loss and ``dr.backward``, the gradients returned
+    (they do not leave a frozen function through the parameters)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    image = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seed)
+    dr.backward(dr.mean(dr.square(image[..., :3] - target)))
+    grads = [dr.grad(params[key]) for key in keys]
+    for key in keys:
+        dr.clear_grad(params[key])
+    return grads
 
 
 def grid(spps: list[int], rrs: list[int | None], views: list[int | None]) -> list[LoopSetting]:
@@ -82,6 +102,7 @@ def run_loop(prepared, setting: LoopSetting, *, target_error: float, budget: flo
     for key in keys:
         opt[key] = params[key]
     params.update(opt)
+    frozen = dr.freeze(_view_gradient, warn_after=64) if setting.freeze else None
     rng = np.random.default_rng(seed)
     curve, reached = [], None
     start = time.perf_counter()
@@ -89,9 +110,15 @@ def run_loop(prepared, setting: LoopSetting, *, target_error: float, budget: flo
         opt.set_learning_rate(spec.learning_rate * spec.final_learning_rate_ratio ** (it / max(total - 1, 1)))
         views = sensors if setting.views is None else rng.choice(sensors, setting.views, replace=False)
         for sensor in views:
-            image = mi.render(scene, params, sensor=int(sensor), integrator=integrator, spp=setting.spp,
-                              seed=it * len(sensors) + int(sensor))
-            dr.backward(dr.mean(dr.square(image[..., :3] - targets[int(sensor)])))
+            if frozen is None:
+                image = mi.render(scene, params, sensor=int(sensor), integrator=integrator, spp=setting.spp,
+                                  seed=it * len(sensors) + int(sensor))
+                dr.backward(dr.mean(dr.square(image[..., :3] - targets[int(sensor)])))
+                continue
+            grads = frozen(scene, params, targets[int(sensor)], dr.opaque(mi.UInt32, it * len(sensors) + int(sensor)),
+                           sensor=int(sensor), spp=setting.spp, integrator=integrator, keys=tuple(keys))
+            for key, grad in zip(keys, grads):
+                dr.accum_grad(opt[key], grad)
         opt.step()
         for i, key in enumerate(keys):
             lo, hi = float(lower[offsets[i]]), float(upper[offsets[i]])
