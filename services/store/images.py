@@ -1,18 +1,17 @@
 """Image encodings of the store: PNG previews (sRGB renders, diverging gradient maps) and float data
 (``.npy``, OpenEXR).
 
-Pure numpy + Pillow + zlib, no Mitsuba: the worker's host process writes these files (it never loads
-Mitsuba, see the import contracts in pyproject.toml), the API process serves them and the dashboard
-shows them.
+Pure numpy + Pillow + OpenEXR (the Academy Software Foundation's binding), no Mitsuba: the worker's
+host process writes these files (it never loads Mitsuba, see the import contracts in pyproject.toml),
+the API process serves them and the dashboard shows them.
 """
 
 from __future__ import annotations
 
 import io
-import struct
-import zlib
 
 import numpy as np
+import OpenEXR
 from PIL import Image, PngImagePlugin
 
 # Anchors of a blue-white-red diverging map (Moreland's "cool to warm"), from -1 to +1.
@@ -74,62 +73,25 @@ def npy_bytes(array: np.ndarray) -> bytes:
 
 
 #: OpenEXR channel names by channel count (Mitsuba's: ``Y``, ``YA``, ``RGB``, ``RGBA``); other counts
-#: get ``C00``, ``C01``, ... (zero-padded: a file's channels are stored in alphabetical order).
+#: get ``C00``, ``C01``, ... (zero-padded: a file's channels are stored in alphabetical order, so the
+#: names keep the array's channel order).
 _EXR_CHANNELS = {1: ("Y",), 2: ("Y", "A"), 3: ("R", "G", "B"), 4: ("R", "G", "B", "A")}
-_EXR_ZIP_LINES = 16   # scanlines per chunk of ZIP_COMPRESSION
-_EXR_FLOAT = 2        # the pixel type of 32-bit float channels
-
-
-def _exr_attribute(name: str, kind: str, value: bytes) -> bytes:
-    return name.encode() + b"\0" + kind.encode() + b"\0" + struct.pack("<i", len(value)) + value
-
-
-def _exr_zip(raw: bytes) -> bytes:
-    """OpenEXR's ZIP chunk: bytes split into even and odd halves, delta-coded, then zlib; the raw
-    bytes when that is not smaller (readers tell them apart by the size)."""
-    data = np.frombuffer(raw, np.uint8)
-    split = np.concatenate([data[0::2], data[1::2]])
-    coded = split.copy()
-    coded[1:] = (split[1:].astype(np.int16) - split[:-1] + 128).astype(np.uint8)   # wraps mod 256
-    packed = zlib.compress(coded.tobytes(), 6)
-    return packed if len(packed) < len(raw) else raw
 
 
 def exr_bytes(array: np.ndarray) -> bytes:
     """A single-part scanline OpenEXR file of ``array`` (``(H, W)`` or ``(H, W, C)``), 32-bit float
     channels, lossless ZIP compression: the values as they are (no clamping, no transfer curve),
-    readable by Mitsuba, OpenEXR, Blender and image viewers."""
+    readable by Mitsuba, OpenEXR, Blender and image viewers. Written by the Academy Software
+    Foundation's ``OpenEXR`` binding into memory (no Mitsuba in this process)."""
     image = np.asarray(array, np.float32)
     if image.ndim == 2:
         image = image[..., None]
     if image.ndim != 3 or 0 in image.shape:
         raise ValueError(f"an EXR image is (H, W) or (H, W, C) with no empty axis, not {np.shape(array)}")
-    height, width, count = image.shape
+    count = image.shape[-1]
     names = _EXR_CHANNELS.get(count) or tuple(f"C{i:02d}" for i in range(count))
-    order = sorted(range(count), key=lambda i: names[i])
-    chlist = b"".join(names[i].encode() + b"\0" + struct.pack("<iB3xii", _EXR_FLOAT, 0, 1, 1) for i in order) + b"\0"
-    window = struct.pack("<iiii", 0, 0, width - 1, height - 1)
-    header = b"".join([
-        struct.pack("<ii", 20000630, 2),   # magic (76 2f 31 01), version 2: single-part scanline
-        _exr_attribute("channels", "chlist", chlist),
-        _exr_attribute("compression", "compression", bytes([3])),   # ZIP_COMPRESSION
-        _exr_attribute("dataWindow", "box2i", window),
-        _exr_attribute("displayWindow", "box2i", window),
-        _exr_attribute("lineOrder", "lineOrder", bytes([0])),       # INCREASING_Y
-        _exr_attribute("pixelAspectRatio", "float", struct.pack("<f", 1.0)),
-        _exr_attribute("screenWindowCenter", "v2f", struct.pack("<ff", 0.0, 0.0)),
-        _exr_attribute("screenWindowWidth", "float", struct.pack("<f", 1.0)),
-        b"\0",
-    ])
-    # Each scanline holds its channels one after the other (alphabetical order), little-endian
-    planar = np.ascontiguousarray(image[..., order].transpose(0, 2, 1), dtype="<f4")   # (H, C, W)
-    chunks = []
-    for y in range(0, height, _EXR_ZIP_LINES):
-        data = _exr_zip(planar[y:y + _EXR_ZIP_LINES].tobytes())
-        chunks.append(struct.pack("<ii", y, len(data)) + data)
-    offset = len(header) + 8 * len(chunks)
-    table = []
-    for chunk in chunks:
-        table.append(struct.pack("<Q", offset))
-        offset += len(chunk)
-    return header + b"".join(table) + b"".join(chunks)
+    channels = {name: np.ascontiguousarray(image[..., i]) for i, name in enumerate(names)}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    buffer = io.BytesIO()
+    OpenEXR.File(header, channels).write(buffer)
+    return buffer.getvalue()

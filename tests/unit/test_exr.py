@@ -1,9 +1,13 @@
-"""The store's OpenEXR encoder (``services.store.images.exr_bytes``, pure numpy + zlib): the files it
-writes decode, with Mitsuba's OpenEXR reader, to the very float32 values it was given."""
+"""The store's OpenEXR encoder (``services.store.images.exr_bytes``, the ``OpenEXR`` binding, no
+Mitsuba): the files it writes decode, with Mitsuba's OpenEXR reader, to the very float32 values it
+was given, channel names and order kept."""
 
 from __future__ import annotations
 
+import io
+
 import numpy as np
+import OpenEXR
 import pytest
 
 from services.store.images import exr_bytes
@@ -22,15 +26,15 @@ def _decode(mi, data: bytes) -> tuple[np.ndarray, str]:
 
 
 @pytest.mark.parametrize(("shape", "pixel_format"), [
-    ((64, 64, 3), "RGB"),      # a whole number of 16-line ZIP chunks
-    ((37, 19, 1), "Y"),        # a short last chunk
+    ((64, 64, 3), "RGB"),      # a whole number of 16-line ZIP blocks
+    ((37, 19, 1), "Y"),        # an odd height: a short last block
     ((5, 7, 4), "RGBA"),
     ((9, 3, 2), "YA"),
     ((20, 6, 5), "MultiChannel"),
 ])
 def test_exr_decodes_to_the_same_float32_values(mi, shape, pixel_format):
     rng = np.random.default_rng(7)
-    noisy = rng.normal(0.0, 10.0, shape).astype(np.float32)       # incompressible: chunks stored raw
+    noisy = rng.normal(0.0, 10.0, shape).astype(np.float32)       # incompressible
     ramp = np.broadcast_to(np.linspace(0.0, 1.0, shape[1], dtype=np.float32)[None, :, None], shape).copy()
     for image in (noisy, ramp):
         decoded, fmt = _decode(mi, exr_bytes(image))
@@ -47,10 +51,12 @@ def test_exr_keeps_every_float_and_compresses_smooth_textures(mi):
     data = exr_bytes(image)
     decoded, _ = _decode(mi, data)
     assert np.array_equal(decoded.view(np.uint32), image.view(np.uint32))
-    assert len(data) < image.nbytes // 4                          # the ZIP chunks are used
+    assert len(data) < image.nbytes // 4                          # lossless ZIP compression is on
 
 
 def test_exr_header_is_what_the_upload_checks_read():
+    header = OpenEXR.File(io.BytesIO(exr_bytes(np.zeros((3, 2, 3), np.float32))), header_only=True).header()
+    assert header["compression"] == OpenEXR.ZIP_COMPRESSION and header["type"] == OpenEXR.scanlineimage
     assert image_header(exr_bytes(np.zeros((10, 30, 3), np.float32))) == ImageInfo("exr", 30, 10, 3)
     assert image_header(exr_bytes(np.zeros((4, 5), np.float32))) == ImageInfo("exr", 5, 4, 1)
     with pytest.raises(ValueError, match="EXR"):
