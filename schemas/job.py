@@ -57,7 +57,8 @@ Scalars = float | list[float]
 
 class ParameterSpec(_Strict):
     """One scene parameter to recover (a ``mi.traverse`` key). A bitmap texture's ``data`` (e.g.
-    ``wall.reflectance.data``) is a texture parameter: all its texels are recovered (prb only)."""
+    ``wall.reflectance.data``) is a texture parameter: all its texels are recovered (prb, direct,
+    radiance-cache, or ndrf-rhs with training.head)."""
 
     key: str = Field(description="Mitsuba traverse key, e.g. 'red.reflectance.value', or a bitmap texture's "
                                  "data, e.g. 'wall.reflectance.data' (a texture parameter).",

@@ -1,6 +1,7 @@
 """Texture parameters (a bitmap's ``data``): prb's gradient per texel against finite differences,
 the reports (records keep summaries, never every texel; the recovered texture as files), the
-per-texel limit and the methods and optimizers that refuse a texture job with the reason.
+per-texel limit and the methods and optimizers that refuse a texture job with the reason
+(``direct`` and ``radiance-cache`` carry one: ``tests/unit/test_texture_direct.py``).
 
 The gradient check: a 4 x 4 RGB albedo on the back wall of the textured box (16 x 16 film, fixed
 path depth 6, no Russian roulette). dz/dp of ``z = Σ w · y`` (``w`` a fixed random weight image)
@@ -134,8 +135,6 @@ def test_texel_limit_refuses_and_scalar_limit_ignores_textures(mi):
 @pytest.mark.parametrize("change, field, reason", [
     ({"method": "ndrf-lhs"}, "method", "dL_theta has three outputs per scalar"),
     ({"method": "ndrf-rhs"}, "method", "set training.head for the many-parameter head"),
-    ({"method": "direct"}, "method", "per-scalar derivative images"),
-    ({"method": "radiance-cache"}, "method", "per-scalar derivative images"),
     ({"optimizer": "levenberg-marquardt"}, "optimizer", r"P x P curvature \(1.1 GiB\)"),
     ({"optimizer": "gauss-newton"}, "optimizer", "P x P curvature"),
     ({"jacobian": "differential-field"}, "jacobian", "dL_theta"),

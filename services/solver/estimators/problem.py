@@ -43,8 +43,8 @@ class Problem:
         self.delta_depth = int(plan.delta_depth.value)
         self.attach_bsdf = bool(plan.bsdf_term.value)
         self.attach_emission = bool(plan.emission_term.value)
-        active = plan.active_scalars
-        self.layout = DerivativeLayout(tuple(active), tuple(plan.scalars[i].channels for i in active))
+        active = plan.active_channels()
+        self.layout = DerivativeLayout(tuple(i for i, _ in active), tuple(channels for _, channels in active))
 
     @cached_property
     def surface(self) -> SurfaceSampler:

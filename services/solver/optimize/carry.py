@@ -10,8 +10,9 @@ cannot carry is refused before it runs, with the reason (an :class:`InvalidJob` 
 ``ndrf-lhs/-rhs``      not textures: ``dL_theta`` has three outputs per scalar (its output
 (no head)              layer grows with P; the paper's Sec. 8 limitation); ``ndrf-rhs`` with
                        ``training.head`` carries them
-``direct``,            not textures: they form dz/dp through per-scalar derivative images at
-``radiance-cache``     the camera hits (P x H x W x 3)
+``direct``,            any count: dz/dp is a contraction at the camera hits and at one bounce,
+``radiance-cache``     formed for a texture job by one adjoint pass through their own estimate
+                       (``OneBounce.adjoint_gradient``), never P images
 ``levenberg-marquardt``,  not textures: the steps solve with a P x P curvature (a 64 x 64
 ``gauss-newton``       texture: 12,288^2 doubles, 1.2 GB) from P Jacobian images per view
 ``jacobian:``          not textures: dL_theta (as above)
@@ -28,7 +29,7 @@ from schemas.job import SECOND_ORDER, JobSpec
 from schemas.methods import AUTO, Method
 
 #: Methods that carry any number of scalars, textures included.
-ANY_COUNT = frozenset({Method.PRB})
+ANY_COUNT = frozenset({Method.PRB, Method.DIRECT, Method.RADIANCE_CACHE})
 #: Methods that carry them with ``training.head`` (the many-parameter head).
 WITH_HEAD = frozenset({Method.NDRF_RHS})
 
@@ -37,9 +38,6 @@ _WHY = {
                      "(the paper's Sec. 8 limitation; the many-parameter head, training.head, serves ndrf-rhs only)",
     Method.NDRF_RHS: "dL_theta has three outputs per scalar, so its output layer grows with the parameter count "
                      "(the paper's Sec. 8 limitation); set training.head for the many-parameter head",
-    Method.DIRECT: "it forms dz/dp from per-scalar derivative images at the camera hits (P x H x W x 3)",
-    Method.RADIANCE_CACHE: "it forms dz/dp from per-scalar derivative images at the camera hits (P x H x W x 3) "
-                           "and trains L_phi beside them",
 }
 
 
@@ -53,7 +51,7 @@ def check_carry(spec: JobSpec, scalars: int, textures: list[str]) -> None:
     head = spec.training.head is not None and spec.method in WITH_HEAD
     if spec.method != AUTO and spec.method not in ANY_COUNT and not head:
         raise InvalidJob("method", f"method {spec.method!r} cannot carry {what}: {_WHY[Method(spec.method)]}; "
-                                   f"use prb (or auto)")
+                                   f"use prb, direct or radiance-cache (or auto)")
     if spec.optimizer in SECOND_ORDER:
         gib = scalars * scalars * 8 / 2**30
         raise InvalidJob("optimizer", f"optimizer {spec.optimizer!r} cannot carry {what}: its steps solve with a "

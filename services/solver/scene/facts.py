@@ -12,7 +12,9 @@ the solver's own machinery, so what it reports is what the solver would compute:
   ``bsdf.eval`` and ``emitter.eval``, Eq. 9) are computed per scalar. A scalar whose local
   derivatives vanish at every vertex of every probed path cannot change the image through paths
   of that length; the RGB channels in which a scalar's derivatives are non-zero tell which
-  outputs of ``dL_theta`` it needs (RGB transport never mixes channels).
+  outputs of ``dL_theta`` it needs (RGB transport never mixes channels). A texture is probed as
+  one unit, along the sum of its texels (one traversal, not one per texel; its facts and its plan
+  entry stand for every texel).
 """
 
 from __future__ import annotations
@@ -25,11 +27,11 @@ import numpy as np
 
 from services.solver.jit_types import Bool, Float
 from services.solver.sampling.camera import WAVELENGTH_SAMPLE, make_sampler, sample_camera
-from services.solver.sampling.incident import sample_incident
+from services.solver.sampling.incident import evaluate_attached, evaluate_incident, sample_geometry, sample_incident
 from services.solver.sampling.surface import SurfaceSampler, pure_delta, queryable, residual_shapes
 from services.solver.sampling.tensors import rgb
 from services.solver.scene.load import LoadedScene
-from services.solver.scene.params import ParameterSet
+from services.solver.scene.params import FORWARD_GROUP, ParameterSet
 from services.solver.seeds import derive_seed
 
 
@@ -42,6 +44,8 @@ class ScalarFacts:
     owner: str
     channel_magnitude: tuple[float, float, float]
     first_bounce: int | None
+    #: scalars it stands for: 1, or a texture's (probed as one unit, along the sum of its texels)
+    size: int = 1
 
 
 @dataclass(frozen=True)
@@ -55,7 +59,7 @@ class SceneFacts:
     delta_chain_counts: list[int]            # counts[d] = probed rays whose delta chain had length d
     delta_unfinished: int                    # probed rays still on a delta surface at the probe's cap
     probe_depth: int
-    scalars: list[ScalarFacts] = field(default_factory=list)
+    scalars: list[ScalarFacts] = field(default_factory=list)   # one per unit (ParameterSet.units)
 
 
 def _delta_lengths(scene: mi.Scene, ray: mi.Ray3f, sampler: mi.Sampler, cap: int, active: Bool):
@@ -115,38 +119,55 @@ def probe_scene(scene: LoadedScene, parameters: ParameterSet, *, probe_rays: int
         delta_chain_counts=[int(c) for c in counts[:max_delta_depth + 1]],
         delta_unfinished=int(counts[max_delta_depth + 1:].sum()), probe_depth=probe_depth,
         scalars=[ScalarFacts(label, info_owner, (float(magnitude[i, 0]), float(magnitude[i, 1]), float(magnitude[i, 2])),
-                             first[i])
-                 for i, (label, info_owner) in enumerate(_owners(parameters))],
+                             first[i], size)
+                 for i, (label, info_owner, size) in enumerate(_owners(parameters))],
     )
 
 
 def _camera_reach(mi_scene: mi.Scene, samples, sampler: mi.Sampler, parameters: ParameterSet, probe_depth: int,
                   max_delta_depth: int) -> tuple[np.ndarray, list[int | None]]:
     """Follow the camera paths of ``samples`` for ``probe_depth`` bounces with forward-mode
-    derivatives: the largest |derivative| of each scalar per RGB channel ``(P, 3)``, and the
-    bounce where each first changed a path (0: at the camera hit's own light)."""
-    magnitude = np.zeros((parameters.n, 3))
-    first: list[int | None] = [None] * parameters.n
+    derivatives along each unit of ``parameters.units()`` (a value's scalar, or a whole texture):
+    the largest |derivative| of each unit per RGB channel ``(U, 3)``, and the bounce where each
+    first changed a path (0: at the camera hit's own light)."""
+    units = parameters.units()
+    magnitude = np.zeros((len(units), 3))
+    first: list[int | None] = [None] * len(units)
+    # A graph that reads a bitmap is traversed at most FORWARD_GROUP times. Each group evaluates its
+    # outputs under its own tracking: the last traversal clears the edges from a texture's data to
+    # the texture that params.update() derived from it, which the next group needs again.
+    group = FORWARD_GROUP if parameters.has_textures else max(1, len(units))
+
+    def derivatives(outputs) -> list[list]:
+        rows: list[list] = []
+        for start in range(0, len(units), group):
+            with parameters.tracking():
+                rows += parameters.forward_units(outputs(), units[start:start + group])
+        return rows
+
     si = samples.chain.si
     active = samples.chain.active
-    with parameters.tracking():
+    with dr.suspend_grad():
         emitter = si.emitter(mi_scene, active)
         on_emitter = active & (emitter != None)
+
+    def emitted():
         with dr.resume_grad(), dr.scoped_set_flag(dr.JitFlag.SymbolicCalls, False):
-            emitted = dr.select(on_emitter, emitter.eval(si, on_emitter), 0.0)
-        _accumulate(magnitude, first, 0, [[g[0]] for g in parameters.forward([emitted])])
-        for bounce in range(probe_depth):
-            where = active & queryable(si, mi_scene)
-            if not dr.any(where):
-                break
-            inc = sample_incident(mi_scene, si, sampler, delta_depth=max_delta_depth, parameters=parameters,
-                                  active=where)
-            d_throughput = inc.d_throughput or [None] * len(inc.d_emitted)
-            _accumulate(magnitude, first, bounce, [[de] + ([dt] if dt is not None else [])
-                                                   for de, dt in zip(inc.d_emitted, d_throughput)])
-            si, active = inc.hit, inc.hit_surface
-            sampler.schedule_state()
-            dr.eval(si, active)                    # one bounce per kernel
+            return [dr.select(on_emitter, emitter.eval(si, on_emitter), 0.0)]
+
+    _accumulate(magnitude, first, 0, derivatives(emitted))
+    for bounce in range(probe_depth):
+        where = active & queryable(si, mi_scene)
+        if not dr.any(where):
+            break
+        geometry = sample_geometry(mi_scene, si, sampler, delta_depth=max_delta_depth, active=where)
+        geometry.schedule()
+        inc = evaluate_incident(mi_scene, geometry)   # the lanes the guard keeps go on
+        _accumulate(magnitude, first, bounce,
+                    derivatives(lambda geometry=geometry: list(evaluate_attached(mi_scene, geometry))))
+        si, active = inc.hit, inc.hit_surface
+        sampler.schedule_state()
+        dr.eval(si, active)                    # one bounce per kernel
     return magnitude, first
 
 
@@ -162,12 +183,22 @@ def direct_reach(scene: LoadedScene, parameters: ParameterSet, *, probe_rays: in
     samples, sampler = sample_camera(scene.scene, scene.sensor(0), spp, derive_seed(seed, "probe", "direct"),
                                      max_delta_depth)
     _, first = _camera_reach(scene.scene, samples, sampler, parameters, 1, max_delta_depth)
-    return [f == 0 for f in first]
+    return [first[u] == 0 for u, unit in enumerate(parameters.units()) for _ in unit]
 
 
 def _owners(parameters: ParameterSet):
+    """``(label, owner, size)`` per unit of ``parameters.units()`` (a texture: its key, its texels)."""
     kinds = parameters.owner_kinds()
-    return [(s.label, kinds[s.key]) for s in parameters.scalars]
+    out = []
+    for unit in parameters.units():
+        key = parameters.scalars[unit[0]].key
+        label = parameters.scalars[unit[0]].label if len(unit) == 1 and not _texture(parameters, key) else key
+        out.append((label, kinds[key], len(unit)))
+    return out
+
+
+def _texture(parameters: ParameterSet, key: str) -> bool:
+    return parameters.infos[parameters.keys.index(key)].texture
 
 
 def _accumulate(magnitude: np.ndarray, first: list, bounce: int, per_scalar: list[list]) -> None:

@@ -27,6 +27,12 @@ import numpy as np
 
 Owner = Literal["bsdf", "emitter"]
 
+#: Scalars (or units, :meth:`ParameterSet.units`) per forward-mode traversal of one AD graph.
+#: Dr.Jit 1.5 crashes (a segmentation fault in ``dr.traverse``) on the fourth forward traversal of
+#: a graph that reads a bitmap texture through evaluated virtual calls (measured: 3 traversals
+#: run, 4 crash); a caller re-evaluates the graph per group.
+FORWARD_GROUP = 3
+
 
 @dataclass(frozen=True)
 class ParameterInfo:
@@ -229,6 +235,38 @@ class ParameterSet:
                 onehots[scalar.key] = np.zeros(_as_numpy(self.params[scalar.key]).size)
             onehots[scalar.key][scalar.component] = 1.0
         return {key: _like(self.params[key], onehot) for key, onehot in onehots.items()}
+
+    def units(self) -> list[list[int]]:
+        """The scalars as the effect probe measures them: every scalar of a value alone, every
+        texture as one unit (all its texels: one forward-mode traversal, not one per texel)."""
+        out, offset = [], 0
+        for info in self.infos:
+            if info.texture:
+                out.append(list(range(offset, offset + info.size)))
+            else:
+                out += [[offset + c] for c in range(info.size)]
+            offset += info.size
+        return out
+
+    def forward_units(self, outputs: Sequence, units: Sequence[Sequence[int]]) -> list[list]:
+        """:meth:`forward` along the summed tangent of each unit (``Σ_{i in unit} ∂/∂p_i``):
+        ``grads[u][j]``. Call inside :meth:`tracking`, as :meth:`forward`."""
+        keep = dr.ADFlag.ClearInterior | dr.ADFlag.ClearInput
+        grads = []
+        for position, unit in enumerate(units):
+            tangents = self.tangents(unit)
+            for key, tangent in tangents.items():
+                dr.set_grad(self.params[key], tangent)
+            dr.enqueue(dr.ADMode.Forward, *[self.params[key] for key in tangents])
+            dr.traverse(dr.ADMode.Forward, flags=keep if position + 1 < len(units) else dr.ADFlag.Default)
+            row = [dr.grad(o) for o in outputs]
+            dr.eval(row)
+            grads.append(row)
+            for o in outputs:
+                dr.clear_grad(o)
+            for key in tangents:
+                dr.clear_grad(self.params[key])
+        return grads
 
     def forward(self, outputs: Sequence, scalars: Sequence[int] | None = None) -> list[list]:
         """Forward-mode derivatives ``∂ output / ∂ p_i`` for every scalar ``i`` (or the listed ones).

@@ -11,7 +11,8 @@ method and overrides. Every decision carries the reason a user reads in the job'
                          reflected light (BSDF parameters and interreflection)
 * ``delta_depth``        ideal-specular bounces a ray must be followed through
 * per scalar             dropped when no probed camera path is influenced by it (zero gradient,
-                         said instead of trained); the RGB channels of dL_theta it needs
+                         said instead of trained); the RGB channels of dL_theta it needs (a
+                         texture: one entry for all its texels)
 """
 
 from __future__ import annotations
@@ -42,6 +43,8 @@ class ScalarPlan:
     #: Bounces from the camera hit to the first vertex where the scalar changed a probed path
     #: (0: seen directly; None: not reached or not probed).
     first_bounce: int | None = None
+    #: scalars it stands for: 1, or a texture's texels (planned as one unit)
+    size: int = 1
 
 
 @dataclass(frozen=True)
@@ -56,7 +59,17 @@ class EffectPlan:
 
     @property
     def active_scalars(self) -> list[int]:
-        return [i for i, s in enumerate(self.scalars) if s.active]
+        """Indices into ``p`` of the active scalars (a texture's entry stands for its texels)."""
+        return [i for i, _ in self.active_channels()]
+
+    def active_channels(self) -> list[tuple[int, tuple[int, ...]]]:
+        """``(index into p, RGB channels carried)`` of every active scalar."""
+        out, offset = [], 0
+        for s in self.scalars:
+            if s.active:
+                out += [(offset + k, s.channels) for k in range(s.size)]
+            offset += s.size
+        return out
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -100,7 +113,8 @@ def plan_effects(facts: SceneFacts, method: str, uses: Collection[str], override
         reached = max(s.channel_magnitude) > 0
         if not reached and overrides.drop_unreachable:
             scalars.append(ScalarPlan(s.label, False, (), f"no camera path of up to {facts.probe_depth + 1} bounces "
-                                                          f"depends on it: its gradient is zero", s.first_bounce))
+                                                          f"depends on it: its gradient is zero", s.first_bounce,
+                                      s.size))
             continue
         channels = tuple(c for c in range(3) if s.channel_magnitude[c] > 0) if overrides.merge_channels and reached \
             else (0, 1, 2)
@@ -108,13 +122,13 @@ def plan_effects(facts: SceneFacts, method: str, uses: Collection[str], override
             f"first reaches the image after {s.first_bounce} bounce(s)" if s.first_bounce is not None else "not probed")
         scalars.append(ScalarPlan(s.label, True, channels, f"{s.owner} parameter, {where}; "
                                                            f"changes channel(s) {', '.join('RGB'[c] for c in channels)}",
-                                  s.first_bounce))
+                                  s.first_bounce, s.size))
     active = [s for s, p in zip(facts.scalars, scalars) if p.active]
     if facts.scalars and not active:
         warnings.append("no optimized scalar can change the image: every gradient is zero")
 
-    emitters = sum(s.owner == "emitter" for s in active)
-    bsdfs = sum(s.owner == "bsdf" for s in active)
+    emitters = sum(s.size for s in active if s.owner == "emitter")
+    bsdfs = sum(s.size for s in active if s.owner == "bsdf")
     emission = _switch("emission_term", overrides.emission_term, emitters > 0,
                        f"{emitters} emitter scalar(s) optimized" if emitters else "no emitter parameter: ∂E = 0",
                        warnings, "the derivative of emission is dropped")

@@ -18,6 +18,17 @@ estimates:
 =================  ==========================================================================
 
 Sampling is detached; ``β`` carries no derivative (see ``services.solver.sampling.delta``).
+
+``dz/dp`` (Eq. 10) of a job with a bitmap texture, for ``direct`` and ``radiance-cache``: one
+reverse-mode pass per spp-pass (:meth:`OneBounce.adjoint_gradient`), never P images. With per-ray
+weights ``w = dz/dy[pixel] · W β / spp`` (detached; a box filter: a pixel is the mean of its rays)
+
+    dz/dp = ∂/∂p Σ_rays w · [E(x) + emitted + throughput · L_phi(x')]
+
+the estimate whose forward-mode derivative the scalar path contracts ray by ray (``L_phi``
+detached, absent for ``direct``): the same rays, the same value. The texture's value reaches
+``bsdf.eval`` through ``params.update()`` under ``ParameterSet.tracking``, so the backward pass
+reaches its ``data``. Jobs without a texture keep the forward-mode contraction.
 """
 
 from __future__ import annotations
@@ -32,10 +43,11 @@ import torch
 
 from schemas.methods import Method
 from services.solver.estimators.methods.base import DIFFERENTIAL, RADIANCE, Fields, GradientMethod
+from services.solver.estimators.methods.head import color
 from services.solver.estimators.problem import Problem
 from services.solver.fields.field import evaluate
 from services.solver.sampling.camera import CameraSamples, develop, sample_camera
-from services.solver.sampling.incident import sample_incident
+from services.solver.sampling.incident import evaluate_attached, sample_geometry, sample_incident
 from services.solver.sampling.passes import passes_for
 from services.solver.sampling.surface import queryable
 from services.solver.sampling.tensors import field_query, mask, rgb
@@ -173,6 +185,86 @@ class OneBounce(CameraHitMethod):
             if self.needs_differential:
                 dl = layout.unpack(evaluate(fields.differential, hits, hit_surface))
                 out = out + rgb(inc.throughput)[:, None, :] * dl
+        return out
+
+    # ------------------------------------------------------------ textures: one adjoint pass
+
+    def loss_gradient(self, problem, fields, dz_dy, *, spp, seed, sensor=0):
+        """A job with a texture: :meth:`adjoint_gradient` (module docstring); otherwise the
+        forward-mode contraction per ray (:meth:`CameraHitMethod.loss_gradient`)."""
+        if problem.parameters.has_textures and not self.needs_differential:
+            return self.adjoint_gradient(problem, fields, dz_dy, spp=spp, seed=seed, sensor=sensor)
+        return super().loss_gradient(problem, fields, dz_dy, spp=spp, seed=seed, sensor=sensor)
+
+    def adjoint_gradient(self, problem: Problem, fields: Fields, dz_dy: np.ndarray, *, spp: int, seed: int,
+                         sensor: int = 0) -> np.ndarray:
+        """``dz/dp`` ``(P,)`` by one Dr.Jit backward pass per spp-pass over the rays (and samples)
+        of :meth:`images`: whatever ``P``, never a per-scalar derivative. Scalars outside the
+        problem's layout get zeros, as on the forward-mode path."""
+        self.check(fields)
+        if self.needs_differential:
+            raise ValueError(f"{self.name} with dL_theta has no adjoint pass (its field has an output per scalar)")
+        width, height = problem.scene.resolution(sensor)
+        if dz_dy.shape != (height, width, 3):
+            raise ValueError(f"dz/dy has shape {dz_dy.shape}, the film is {(height, width, 3)}")
+        params, layout = problem.parameters, problem.layout
+        if layout.active == 0:
+            return np.zeros(params.n)
+        sensor_obj = problem.scene.sensor(sensor)
+        if not sensor_obj.film().rfilter().is_box_filter():
+            raise ValueError(f"{self.name} contracts dz/dy per ray for a texture job: it needs a box pixel filter")
+        passes, per_pass = passes_for(width * height, spp, RAYS_PER_PASS)
+        pixel = torch.from_numpy(np.ascontiguousarray(dz_dy.reshape(-1, 3), dtype=np.float32))
+        total = np.zeros(params.n)
+        for k in range(passes):
+            total += self._adjoint_pass(problem, fields, sensor_obj, pixel, per_pass, passes,
+                                        derive_seed(seed, "camera", k))
+        if layout.active < params.n:
+            kept = np.zeros(params.n)
+            kept[list(layout.scalars)] = total[list(layout.scalars)]
+            total = kept
+        return total
+
+    def _adjoint_pass(self, problem: Problem, fields: Fields, sensor: mi.Sensor, pixel: torch.Tensor, spp: int,
+                      passes: int, seed: int) -> np.ndarray:
+        """One pass of :meth:`adjoint_gradient`: the samples of :meth:`_rays` (the same seed draws
+        the same camera rays and incident samples), the estimate attached, one backward pass."""
+        scene, params = problem.scene.scene, problem.parameters
+        samples, sampler = sample_camera(scene, sensor, spp, seed, problem.delta_depth)
+        chain = samples.chain
+        si = chain.si
+        with dr.suspend_grad():
+            emitter = si.emitter(scene, chain.active)
+            on_emitter = chain.active & (emitter != None)
+            on_surface = chain.active & queryable(si, scene)
+            geometry = sample_geometry(scene, si, sampler, delta_depth=problem.delta_depth, active=on_surface)
+            geometry.schedule()
+        weight = rgb(samples.weight * chain.beta) * pixel.repeat_interleave(spp, 0) / (spp * passes)   # (K, 3)
+        with params.tracking():
+            emitted, throughput = evaluate_attached(scene, geometry, attach_bsdf=problem.attach_bsdf,
+                                                    attach_emission=problem.attach_emission)
+            with dr.resume_grad():
+                # the forward-mode path's guard: a lane whose values are not finite contributes nothing
+                ok = dr.all(dr.isfinite(dr.detach(emitted))) & dr.all(dr.isfinite(dr.detach(throughput)))
+                value = dr.select(ok, emitted, 0.0)
+                if self.needs_radiance:
+                    assert fields.radiance is not None  # self.check
+                    with torch.no_grad():
+                        radiance = evaluate(fields.radiance, field_query(geometry.hit),
+                                            mask(geometry.hit_surface & ok))
+                    value = value + dr.select(ok, throughput, 0.0) * color(radiance)
+                if problem.attach_emission:  # ∂E at camera hits on emitters (exact)
+                    with dr.scoped_set_flag(dr.JitFlag.SymbolicCalls, False):
+                        value = value + dr.select(on_emitter, emitter.eval(si, on_emitter), 0.0)
+                # no lane may depend on p (a texture only seen after two bounces): dz/dp is then 0
+                dr.backward(dr.sum(dr.sum(value * color(weight), axis=None), axis=None),
+                            flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+            problem.count_sanitized("camera", int(np.asarray(dr.count(~ok)).reshape(-1)[0]))
+            grads = [dr.grad(params.params[key]) for key in params.keys]
+            dr.eval(*grads)
+            out = np.concatenate([np.asarray(g, np.float64).reshape(-1) for g in grads])
+            for key in params.keys:
+                dr.clear_grad(params.params[key])
         return out
 
 

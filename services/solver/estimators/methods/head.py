@@ -41,6 +41,7 @@ from services.solver.sampling.incident import IncidentGeometry, evaluate_attache
 from services.solver.sampling.passes import passes_for
 from services.solver.sampling.surface import queryable
 from services.solver.sampling.tensors import field_query, mask, rgb
+from services.solver.scene.params import FORWARD_GROUP  # scalars per forward-mode traversal of one graph
 from services.solver.seeds import derive_seed
 
 #: Camera rays per pass (two bounces each, and the head's R basis values at x').
@@ -184,10 +185,6 @@ class NdrfHead(GradientMethod):
         return (out / passes).astype(np.float32)
 
 
-#: Scalars per forward-mode traversal of one AD graph. Dr.Jit 1.5 crashes (a segmentation fault in
-#: ``dr.traverse``) on the fourth forward traversal of a graph that reads a bitmap texture through
-#: evaluated virtual calls (measured: 3 traversals run, 4 crash); each group re-evaluates the graph.
-FORWARD_GROUP = 3
 
 
 def forward_grouped(problem: Problem, evaluate_outputs, scalars: list[int]) -> list[list]:
