@@ -275,18 +275,5 @@ class ParameterSet:
         detached, evaluation attached). The AD graph is traversed once per scalar and kept until
         the last one. Returns ``grads[i][j]`` = derivative of ``outputs[j]`` w.r.t. scalar ``i``.
         """
-        keep = dr.ADFlag.ClearInterior | dr.ADFlag.ClearInput
         order = list(range(self.n)) if scalars is None else list(scalars)
-        grads = []
-        for position, i in enumerate(order):
-            key, tangent = self.tangent(i)
-            dr.set_grad(self.params[key], tangent)
-            dr.enqueue(dr.ADMode.Forward, self.params[key])
-            dr.traverse(dr.ADMode.Forward, flags=keep if position + 1 < len(order) else dr.ADFlag.Default)
-            row = [dr.grad(o) for o in outputs]
-            dr.eval(row)
-            grads.append(row)
-            for o in outputs:
-                dr.clear_grad(o)
-            dr.clear_grad(self.params[key])
-        return grads
+        return self.forward_units(outputs, [[i] for i in order])

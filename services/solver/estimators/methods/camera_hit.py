@@ -109,19 +109,26 @@ class CameraHitMethod(GradientMethod):
 
     # ------------------------------------------------------------ camera pass
 
+    @staticmethod
+    def _camera_hits(problem: Problem, sensor: mi.Sensor, spp: int, seed: int):
+        """The camera rays of one pass and where they land: ``(samples, sampler, emitter,
+        on_emitter, on_surface)``, detached; the same seed draws the same rays."""
+        scene = problem.scene.scene
+        samples, sampler = sample_camera(scene, sensor, spp, seed, problem.delta_depth)
+        si, active = samples.chain.si, samples.chain.active
+        with dr.suspend_grad():
+            emitter = si.emitter(scene, active)
+            on_emitter = active & (emitter != None)
+            on_surface = active & queryable(si, scene)
+        return samples, sampler, emitter, on_emitter, on_surface
+
     def _rays(self, problem: Problem, fields: Fields, sensor: mi.Sensor, spp: int,
               seed: int) -> tuple[CameraSamples, np.ndarray]:
         """The per-ray derivatives ``dI`` of one pass: ``(K, A, 3)``, ``K = W·H·spp`` in Mitsuba's
         pixel-major order."""
-        scene = problem.scene.scene
         params, layout = problem.parameters, problem.layout
-        samples, sampler = sample_camera(scene, sensor, spp, seed, problem.delta_depth)
-        chain = samples.chain
-        si = chain.si
-        with dr.suspend_grad():
-            emitter = si.emitter(scene, chain.active)
-            on_emitter = chain.active & (emitter != None)
-            on_surface = chain.active & queryable(si, scene)
+        samples, sampler, emitter, on_emitter, on_surface = self._camera_hits(problem, sensor, spp, seed)
+        chain, si = samples.chain, samples.chain.si
         d_reflected = self.differential_radiance(problem, fields, si, on_surface, sampler)  # (K, A, 3)
         if problem.attach_emission:  # ∂E at camera hits on emitters (exact)
             with params.tracking():
@@ -230,13 +237,9 @@ class OneBounce(CameraHitMethod):
         """One pass of :meth:`adjoint_gradient`: the samples of :meth:`_rays` (the same seed draws
         the same camera rays and incident samples), the estimate attached, one backward pass."""
         scene, params = problem.scene.scene, problem.parameters
-        samples, sampler = sample_camera(scene, sensor, spp, seed, problem.delta_depth)
-        chain = samples.chain
-        si = chain.si
+        samples, sampler, emitter, on_emitter, on_surface = self._camera_hits(problem, sensor, spp, seed)
+        chain, si = samples.chain, samples.chain.si
         with dr.suspend_grad():
-            emitter = si.emitter(scene, chain.active)
-            on_emitter = chain.active & (emitter != None)
-            on_surface = chain.active & queryable(si, scene)
             geometry = sample_geometry(scene, si, sampler, delta_depth=problem.delta_depth, active=on_surface)
             geometry.schedule()
         weight = rgb(samples.weight * chain.beta) * pixel.repeat_interleave(spp, 0) / (spp * passes)   # (K, 3)
