@@ -1,6 +1,7 @@
 """The web dashboard in a real browser: Debian's Chromium driven by Playwright against a real
 ``ndrf serve`` (embedded mode, API keys on). The key prompt, the submit form and its field errors,
-the job page following the SSE stream, the gradient slider, cancel, and the live jobs list.
+the job page following the SSE stream, the gradient slider, cancel, the live jobs list, and a
+texture job's texture charts.
 
 Screenshots go to the test's tmp_path; with NDRF_UPDATE_SCREENSHOTS=1 the job page is also
 written to docs/assets/dashboard.png for the docs."""
@@ -264,3 +265,40 @@ def test_upload_a_scene_folder_and_a_target_photograph(page, api, tmp_path):
     assert job["scene"] == "xml" and job["method"] == "direct" and job["target"] is None
     assert page.get_by_test_id("parameter-error").text_content() == "—"               # no known target
     page.screenshot(path=tmp_path / "upload-job.png", full_page=True)
+
+
+def test_a_texture_job_charts_its_texture_summaries(page, api, tmp_path):
+    """A pure texture job (an uploaded 8 x 8 textured box, no listed scalar): the parameters card
+    charts the texture's mean per channel with min, max and the target's mean, its PSNR and the
+    RMS of dz/dp over the iterations, with a table row, instead of waiting for scalars."""
+    from services.solver.scene.textured import KEY, write_textured_box
+    from services.uploads.pack import pack_scene
+
+    xml, files = pack_scene(write_textured_box(tmp_path / "scene", size=8, views=1, film=16))
+    job = {"name": "texture", "scene": {"xml": xml, "files": files}, "parameters": [{"key": KEY, "init": 0.5}],
+           "targets": {"synthetic": {"values": {KEY: None}, "spp": 8}}, "iterations": 4,
+           "render": {"spp": 4, "gradient_spp": 4}, "seed": 1}
+    status, _, accepted = api.json("POST", "/v1/jobs", job)
+    assert status == 202, accepted
+    api.wait_status(accepted["id"], {"succeeded"}, 120)
+    records = api.json("GET", f"/v1/jobs/{accepted['id']}/iterations")[2]
+    assert len(records) == 4 and all(r["parameters"] == [] for r in records)
+
+    open_with_key(page, api, f"/#/jobs/{accepted['id']}")
+    charts = page.locator(f'[data-testid=texture-chart][data-key="{KEY}"]')
+    charts.wait_for()
+    psnr = charts.locator(f'[data-testid=texture-psnr-chart][data-key="{KEY}"]')
+    page.wait_for_function("() => document.querySelector('[data-testid=texture-psnr-chart]')?.dataset.points === '4'")
+    assert psnr.locator("path.chart-line").count() == 1                         # one PSNR series
+    mean = charts.locator(f'[data-testid=texture-mean-chart][data-key="{KEY}"]')
+    assert mean.get_attribute("data-points") == "4"
+    assert mean.locator("path.chart-line").count() == 5                         # R, G, B, min, max
+    assert mean.locator("line.chart-guide").count() == 3                        # the target's mean per channel
+    assert charts.locator("[data-testid=texture-gradient-chart]").get_attribute("data-points") == "4"
+    row = page.locator(f'[data-testid=texture-row][data-key="{KEY}"]')
+    cells = row.locator("td").all_text_contents()
+    assert cells[:2] == [KEY, "8×8×3"] and len(cells[2].split(", ")) == 3
+    assert float(cells[3]) == pytest.approx(records[-1]["textures"][KEY]["psnr"], rel=1e-2)
+    assert "appear when the job starts" not in page.get_by_test_id("parameters-card").text_content()
+    assert page.get_by_test_id("parameter-error").text_content() == "—"         # no listed scalar to compare
+    page.screenshot(path=tmp_path / "texture-job.png", full_page=True)

@@ -1,8 +1,10 @@
 // The parameters of a job: each parameter key's scalars over the iterations, with the targets of a
-// synthetic job as dashed lines, and a table of init, current and target values and dz/dp.
+// synthetic job as dashed lines, and a table of init, current and target values and dz/dp; then
+// the textures' summaries (./job-textures.js), whose texels are not listed scalars.
 
 import { PALETTE, RGB, legend, lineChart } from "../charts.js";
 import { fmtNum, h } from "../dom.js";
+import { texturesPanel } from "./job-textures.js";
 
 /** Scalars grouped by their parameter key: [{key, scalars: [index]}]. */
 function groups(plan) {
@@ -21,10 +23,18 @@ export function currentValues(plan, records) {
 export function parametersPanel() {
   const paramCharts = h("div.param-charts", { dataset: { testid: "parameter-charts" } });
   const paramTable = h("div.table-scroll");
+  const textures = texturesPanel();
 
   function update(plan, records) {
+    textures.update(plan, records);
     if (!plan || !plan.scalars) {
       paramCharts.replaceChildren(h("p.muted", "The parameters appear when the job starts."));
+      paramTable.replaceChildren();
+      return;
+    }
+    if (!plan.scalars.length) {        // a pure texture job: its textures are all there is
+      if (plan.textures?.length) paramCharts.replaceChildren();
+      else paramCharts.replaceChildren(h("p.muted", "No scalar parameters."));
       paramTable.replaceChildren();
       return;
     }
@@ -59,5 +69,5 @@ export function parametersPanel() {
         h("td.num", gradient ? fmtNum(gradient[i], 3) : "—"))))));
   }
 
-  return { element: h("div", paramCharts, paramTable), update };
+  return { element: h("div", paramCharts, paramTable, textures.element), update };
 }

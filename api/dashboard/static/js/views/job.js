@@ -279,7 +279,7 @@ export function jobView(root, jobId) {
       ? `residuals ${fmtNum(last.residual_radiance, 2)} / ${fmtNum(last.residual_differential, 2)}` : "";
     const targets = job.plan?.target_values;
     const values = currentValues(job.plan, records);
-    stats.error.value.textContent = targets && values
+    stats.error.value.textContent = targets?.length && values     // none listed: a pure texture job
       ? fmtNum(Math.max(...targets.map((t, i) => Math.abs(values[i] - t))), 3) : "—";
     stats.error.sub.textContent = targets ? "synthetic target" : "no known target";
     tick(finished, records);
