@@ -161,7 +161,8 @@ def fetch_job(api: Client, job_id: str, out: Path, all_images: bool = False) -> 
     written = [_write_json(out / "job.json", job), _write_json(out / "iterations.json", records)]
     plan = job.get("plan") or {}
     for sensor in plan.get("sensors") or [0]:
-        written += _maybe(api, f"{base}/targets/{sensor}.png", out / "targets" / f"target-{sensor}.png")
+        for ext in ("png", "exr"):   # a job begun before targets had an .exr has none: skipped
+            written += _maybe(api, f"{base}/targets/{sensor}.{ext}", out / "targets" / f"target-{sensor}.{ext}")
     with_images = [r["iteration"] for r in records if r.get("images")]
     for k in with_images if all_images else with_images[-1:]:
         folder = out / "iterations" / f"{k:06d}"

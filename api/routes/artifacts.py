@@ -182,13 +182,27 @@ def iteration_texture(job_id: str, k: Iteration, runtime: RuntimeDep, caller: Re
     return _texture(files_or_404(runtime, job_id, caller), k, name)
 
 
-@router.get("/targets/{sensor}.png", summary="Target image", responses={200: {"content": {PNG: {}}}})
-def target_png(job_id: str, runtime: RuntimeDep, caller: ReaderDep, sensor: Annotated[int, PathParam(ge=0, le=64)]):
-    files = files_or_404(runtime, job_id, caller)
-    key = files.target_key(sensor, "png")
+Sensor = Annotated[int, PathParam(ge=0, le=64, description="Sensor index.")]
+
+
+def _target(files: JobFiles, sensor: int, ext: str, media_type: str):
+    key = files.target_key(sensor, ext)
     if not files.store.exists(key):
-        raise _missing(f"target of sensor {sensor}")
-    return send(files, key, PNG, f"target of sensor {sensor}")
+        raise _missing(f"target of sensor {sensor}" + ("" if ext == "png" else f" as .{ext}"))
+    return send(files, key, media_type, f"target of sensor {sensor}",
+                filename=None if ext == "png" else f"{files.job_id}-target-{sensor}.{ext}")
+
+
+@router.get("/targets/{sensor}.png", summary="Target image", responses={200: {"content": {PNG: {}}}})
+def target_png(job_id: str, runtime: RuntimeDep, caller: ReaderDep, sensor: Sensor):
+    """The target of a sensor as an sRGB preview."""
+    return _target(files_or_404(runtime, job_id, caller), sensor, "png", PNG)
+
+
+@router.get("/targets/{sensor}.exr", summary="Target image as OpenEXR", responses={200: {"content": {EXR: {}}}})
+def target_exr(job_id: str, runtime: RuntimeDep, caller: ReaderDep, sensor: Sensor):
+    """The target of a sensor, linear RGB as fitted (OpenEXR, 32-bit float, unclamped)."""
+    return _target(files_or_404(runtime, job_id, caller), sensor, "exr", EXR)
 
 
 @router.get("/checkpoints/latest", summary="Latest checkpoint",

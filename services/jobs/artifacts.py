@@ -86,15 +86,17 @@ class JobWriter:
         self.event("plan", plan=plan)
 
     def targets(self, images: dict[int, np.ndarray]) -> None:
+        """Each sensor's target ``(H, W, 3)`` as ``targets/target-<s>.npy`` (float32), the same
+        values as ``.exr`` (OpenEXR, 32-bit float, as the textures) and an sRGB ``.png`` preview."""
         self.guard()
+        encoders = {"npy": lambda a: npy_bytes(np.asarray(a, np.float32)), "exr": exr_bytes, "png": srgb_png}
         for sensor, image in sorted(images.items()):
             # Deterministic, written once; durable at the next checkpoint, as the records are (a
-            # resume that finds them missing writes them again): an fsync each would hold the
-            # first iterations' events back behind them
-            if not self.files.store.exists(self.files.target_key(sensor, "npy")):
-                self._put(self.files.target_key(sensor, "npy"), npy_bytes(np.asarray(image, np.float32)),
-                          durable=False)
-                self._put(self.files.target_key(sensor, "png"), srgb_png(image), durable=False)
+            # resume that finds one missing, or a job begun by a version without the .exr, writes
+            # it): an fsync each would hold the first iterations' events back behind them
+            for ext, encode in encoders.items():
+                if not self.files.store.exists(self.files.target_key(sensor, ext)):
+                    self._put(self.files.target_key(sensor, ext), encode(image), durable=False)
 
     def progress(self, kind: str, payload: dict) -> None:
         self.guard()

@@ -5,7 +5,8 @@
       plan.json                     what actually runs: resolved settings, scalars, bounds, fields, effects
       record.json                   status, iteration, attempt, error (written only by services.jobs.state)
       events.jsonl                  append-only event log (an object per event in the S3 store)
-      targets/target-<s>.png|.npy   target image of sensor s
+      targets/target-<s>.npy|.exr|.png  target image of sensor s: float32 (H, W, 3), the same as
+                                    OpenEXR (32-bit float), an sRGB preview
       iterations/<k>/record.json    loss, parameters, dz/dp, seconds per phase, residual norms
       iterations/<k>/render.png     candidate of sensor 0 (render-<s>.png for the others)
       iterations/<k>/gradients.npy  dI/dp of sensor 0, float32 (P, H, W, 3), every images_every iterations

@@ -39,7 +39,8 @@ def test_every_v1_route_needs_a_key(served):
 
 JOB_ROUTES = [("GET", ""), ("GET", "/iterations"), ("GET", "/events"), ("GET", "/iterations/0/render.png"),
               ("GET", "/iterations/1/gradients/0.png"), ("GET", "/iterations/1/gradients.npy"),
-              ("GET", "/targets/0.png"), ("GET", "/checkpoints/latest"), ("POST", "/cancel"), ("DELETE", "")]
+              ("GET", "/targets/0.png"), ("GET", "/targets/0.exr"), ("GET", "/checkpoints/latest"), ("POST", "/cancel"),
+              ("DELETE", "")]
 
 
 @pytest.mark.parametrize("method, route", JOB_ROUTES)

@@ -251,7 +251,7 @@ def test_cli_and_client_talk_to_a_server(embedded, tmp_path, monkeypatch):
     assert len(json.loads((fetched / "iterations.json").read_text())) == 3
     assert (fetched / "iterations" / "000002" / "render.png").read_bytes()[:4] == b"\x89PNG"
     assert (fetched / "checkpoints" / "latest.pt").stat().st_size > 0
-    assert (fetched / "targets" / "target-0.png").exists()
+    assert (fetched / "targets" / "target-0.png").exists() and (fetched / "targets" / "target-0.exr").exists()
 
     spec_file = tmp_path / "experiment.json"
     spec_file.write_text(json.dumps({"base": small_job("direct", iterations=2), "seeds": [1, 2]}))

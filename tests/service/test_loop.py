@@ -20,7 +20,7 @@ def test_run_writes_the_documented_job_folder(mi, tmp_path):
     summary = _run(small_job("ndrf-rhs", images_every=1), tmp_path)
     assert summary["status"] == "succeeded" and summary["iterations"] == 6
     for name in ("spec.json", "plan.json", "record.json", "events.jsonl", "summary.json", "checkpoints/latest.pt",
-                 "targets/target-0.png", "targets/target-0.npy"):
+                 "targets/target-0.png", "targets/target-0.npy", "targets/target-0.exr"):
         assert (tmp_path / name).is_file(), name
     for k in range(6):
         it = tmp_path / "iterations" / f"{k:06d}"

@@ -1,5 +1,6 @@
 """The API serves a texture job's files: the recovered texture (final/) and a texture and its
-gradient at an iteration; names outside the texture pattern are refused."""
+gradient at an iteration; names outside the texture pattern are refused. And, as for every job, each
+sensor's target as OpenEXR."""
 
 from __future__ import annotations
 
@@ -53,3 +54,11 @@ def test_texture_files_are_served(mi, tmp_path):
         assert public["parameters"] is None and public["metrics"]["textures"][KEY]["shape"] == [64, 64, 3]
         assert 0.0 < public["metrics"]["textures"][KEY]["psnr"] < 60.0
         assert client.get(f"/v1/jobs/{JOB}/final/..%2Fspec.json.npy").status_code in (404, 422)
+        targets = tmp_path / "store" / JOB / "targets"
+        sensors = len(list(targets.glob("target-*.npy")))
+        assert sensors == 4                                       # the textured box's views
+        for sensor in range(sensors):
+            target = client.get(f"/v1/jobs/{JOB}/targets/{sensor}.exr")
+            assert target.status_code == 200 and target.headers["content-type"] == "image/x-exr"
+            assert np.array_equal(_exr_pixels(mi, target.content), np.load(targets / f"target-{sensor}.npy"))
+        assert client.get(f"/v1/jobs/{JOB}/targets/{sensors}.exr").status_code == 404

@@ -61,3 +61,30 @@ def test_exr_header_is_what_the_upload_checks_read():
     assert image_header(exr_bytes(np.zeros((4, 5), np.float32))) == ImageInfo("exr", 5, 4, 1)
     with pytest.raises(ValueError, match="EXR"):
         exr_bytes(np.zeros((0, 4, 3), np.float32))
+
+
+def test_each_sensor_target_is_written_as_exr_beside_its_npy(mi, tmp_path):
+    """``JobWriter.targets``: ``targets/target-<s>.exr`` decodes (Mitsuba's reader) to the very
+    float32 values of ``target-<s>.npy``, HDR and negative values unclamped; a resume of a job begun
+    without the ``.exr`` writes the missing file and leaves the others as they are."""
+    from services.jobs.artifacts import JobWriter
+    from services.jobs.state import JobStates
+    from services.store.local import FolderStore
+
+    rng = np.random.default_rng(3)
+    images = {0: rng.uniform(0.0, 40.0, (6, 8, 3)), 2: rng.normal(0.0, 1.0, (5, 4, 3)).astype(np.float32)}
+    writer = JobWriter(JobStates(FolderStore(tmp_path)), "job")
+    writer.targets(images)
+    folder = tmp_path / "job" / "targets"
+    for sensor, image in images.items():
+        npy = np.load(folder / f"target-{sensor}.npy")
+        decoded, fmt = _decode(mi, (folder / f"target-{sensor}.exr").read_bytes())
+        assert fmt == "RGB" and np.array_equal(decoded, npy)
+        assert np.array_equal(decoded, np.asarray(image, np.float32))
+        assert decoded.max() > 1.0 or decoded.min() < 0.0                     # what a PNG could not keep
+        assert (folder / f"target-{sensor}.png").is_file()
+    (folder / "target-2.exr").unlink()
+    before = (folder / "target-2.npy").stat().st_mtime_ns
+    writer.targets(images)
+    assert np.array_equal(_decode(mi, (folder / "target-2.exr").read_bytes())[0], np.load(folder / "target-2.npy"))
+    assert (folder / "target-2.npy").stat().st_mtime_ns == before

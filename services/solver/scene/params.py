@@ -228,13 +228,15 @@ class ParameterSet:
     def tangents(self, indices: Sequence[int]) -> dict[str, object]:
         """The tangent selecting the sum of scalars ``indices``: ``{key: value-shaped array}`` with
         a 1 at each selected component (one forward-mode pass then gives ``Σ_i ∂/∂p_i``)."""
-        onehots: dict[str, np.ndarray] = {}
-        for index in indices:
-            scalar = self.scalars[index]
-            if scalar.key not in onehots:
-                onehots[scalar.key] = np.zeros(_as_numpy(self.params[scalar.key]).size)
-            onehots[scalar.key][scalar.component] = 1.0
-        return {key: _like(self.params[key], onehot) for key, onehot in onehots.items()}
+        selected = np.zeros(self.n)
+        selected[np.asarray(list(indices), dtype=np.int64)] = 1.0     # vectorised: a texture has millions
+        out, offset = {}, 0
+        for key, info in zip(self.keys, self.infos):
+            part = selected[offset:offset + info.size]
+            offset += info.size
+            if part.any():
+                out[key] = _like(self.params[key], part)
+        return out
 
     def units(self) -> list[list[int]]:
         """The scalars as the effect probe measures them: every scalar of a value alone, every

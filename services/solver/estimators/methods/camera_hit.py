@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import logging
 from abc import abstractmethod
+from dataclasses import dataclass, replace
 
 import drjit as dr
 import mitsuba as mi
@@ -46,8 +47,9 @@ from services.solver.estimators.methods.base import DIFFERENTIAL, RADIANCE, Fiel
 from services.solver.estimators.methods.head import color
 from services.solver.estimators.problem import Problem
 from services.solver.fields.field import evaluate
+from services.solver.jit_types import Bool, Color, MitsubaObject
 from services.solver.sampling.camera import CameraSamples, develop, sample_camera
-from services.solver.sampling.incident import evaluate_attached, sample_geometry, sample_incident
+from services.solver.sampling.incident import IncidentGeometry, evaluate_attached, sample_geometry, sample_incident
 from services.solver.sampling.passes import passes_for
 from services.solver.sampling.surface import queryable
 from services.solver.sampling.tensors import field_query, mask, rgb
@@ -235,40 +237,89 @@ class OneBounce(CameraHitMethod):
     def _adjoint_pass(self, problem: Problem, fields: Fields, sensor: mi.Sensor, pixel: torch.Tensor, spp: int,
                       passes: int, seed: int) -> np.ndarray:
         """One pass of :meth:`adjoint_gradient`: the samples of :meth:`_rays` (the same seed draws
-        the same camera rays and incident samples), the estimate attached, one backward pass."""
-        scene, params = problem.scene.scene, problem.parameters
+        the same camera rays and incident samples), the estimate attached, one backward pass:
+        ``(P,)``.
+
+        The forward-mode path's guard (``sample_incident``): a ray whose value or derivative is not
+        finite contributes nothing and is counted under ``camera``. A reverse pass has no per-ray
+        derivative to test, so a backward pass whose active entries are all finite is kept as is
+        (only rays with non-finite values are dropped, by ``select``); otherwise the rays whose
+        derivative along the active scalars is not finite (one forward-mode traversal) or whose
+        weight is not are found, and the pass is redone with them masked out of every evaluation
+        (a ``select`` alone would leak ``0 · inf`` into the texels they read)."""
+        scene, params, scalars = problem.scene.scene, problem.parameters, list(problem.layout.scalars)
         samples, sampler, emitter, on_emitter, on_surface = self._camera_hits(problem, sensor, spp, seed)
-        chain, si = samples.chain, samples.chain.si
         with dr.suspend_grad():
-            geometry = sample_geometry(scene, si, sampler, delta_depth=problem.delta_depth, active=on_surface)
+            geometry = sample_geometry(scene, samples.chain.si, sampler, delta_depth=problem.delta_depth,
+                                       active=on_surface)
             geometry.schedule()
-        weight = rgb(samples.weight * chain.beta) * pixel.repeat_interleave(spp, 0) / (spp * passes)   # (K, 3)
-        with params.tracking():
-            emitted, throughput = evaluate_attached(scene, geometry, attach_bsdf=problem.attach_bsdf,
-                                                    attach_emission=problem.attach_emission)
-            with dr.resume_grad():
-                # the forward-mode path's guard: a lane whose values are not finite contributes nothing
-                ok = dr.all(dr.isfinite(dr.detach(emitted))) & dr.all(dr.isfinite(dr.detach(throughput)))
-                value = dr.select(ok, emitted, 0.0)
-                if self.needs_radiance:
-                    assert fields.radiance is not None  # self.check
-                    with torch.no_grad():
-                        radiance = evaluate(fields.radiance, field_query(geometry.hit),
-                                            mask(geometry.hit_surface & ok))
-                    value = value + dr.select(ok, throughput, 0.0) * color(radiance)
-                if problem.attach_emission:  # ∂E at camera hits on emitters (exact)
-                    with dr.scoped_set_flag(dr.JitFlag.SymbolicCalls, False):
-                        value = value + dr.select(on_emitter, emitter.eval(si, on_emitter), 0.0)
-                # no lane may depend on p (a texture only seen after two bounces): dz/dp is then 0
-                dr.backward(dr.sum(dr.sum(value * color(weight), axis=None), axis=None),
-                            flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
-            problem.count_sanitized("camera", int(np.asarray(dr.count(~ok)).reshape(-1)[0]))
-            grads = [dr.grad(params.params[key]) for key in params.keys]
-            dr.eval(*grads)
-            out = np.concatenate([np.asarray(g, np.float64).reshape(-1) for g in grads])
-            for key in params.keys:
-                dr.clear_grad(params.params[key])
+        per_ray = rgb(samples.weight * samples.chain.beta) * pixel.repeat_interleave(spp, 0) / (spp * passes)
+        weight: Color = color(per_ray)                                                               # (K, 3)
+        radiance = None
+        if self.needs_radiance:
+            assert fields.radiance is not None  # self.check
+            with torch.no_grad():
+                radiance = color(evaluate(fields.radiance, field_query(geometry.hit), mask(geometry.hit_surface)))
+        hits = _CameraHits(samples.chain.si, emitter, on_emitter, geometry, radiance)
+        with params.tracking():   # one graph per tracking block: a traversal clears the texture's edges
+            value, ok = hits.estimate(problem, mi.Bool(True))
+            out = _backward(params, value * weight)
+        if not np.all(np.isfinite(out[scalars])):
+            with params.tracking(), dr.resume_grad():
+                value, ok = hits.estimate(problem, ok)
+                derivative = params.forward_units([value], [scalars])[0][0]
+            ok &= dr.all(dr.isfinite(derivative)) & dr.all(dr.isfinite(weight))
+            with params.tracking():
+                value, ok = hits.estimate(problem, ok)
+                out = _backward(params, value * weight)
+        problem.count_sanitized("camera", int(np.asarray(dr.count(~ok)).reshape(-1)[0]))
         return out
+
+
+@dataclass
+class _CameraHits:
+    """What one adjoint pass evaluates attached, ``K`` lanes: the camera hits ``si`` (on an
+    emitter where ``on_emitter``), their incident samples ``geometry`` and the detached cache
+    ``radiance`` at ``x'`` (``mi.Color3f``; None for ``direct``)."""
+
+    si: MitsubaObject
+    emitter: MitsubaObject
+    on_emitter: Bool
+    geometry: IncidentGeometry
+    radiance: Color | None
+
+    def estimate(self, problem: Problem, keep: Bool) -> tuple[Color, Bool]:
+        """``E(x) + emitted + throughput · L_phi(x')`` per ray (``E`` on emitters, the rest on
+        surfaces: no ray has both), attached (under ``tracking``), ``(K,)`` ``mi.Color3f``,
+        evaluated only on the rays ``keep``; zero on the others and where the incident sample's
+        values are not finite. Returns it and the rays it kept."""
+        g = self.geometry
+        masked = replace(g, active_e=g.active_e & keep, active_b=g.active_b & keep,
+                         hits_emitter=g.hits_emitter & keep, hit_surface=g.hit_surface & keep)
+        emitted, throughput = evaluate_attached(problem.scene.scene, masked, attach_bsdf=problem.attach_bsdf,
+                                                attach_emission=problem.attach_emission)
+        with dr.resume_grad():
+            ok = keep & dr.all(dr.isfinite(dr.detach(emitted))) & dr.all(dr.isfinite(dr.detach(throughput)))
+            value = emitted if self.radiance is None else emitted + throughput * self.radiance
+            if problem.attach_emission:  # ∂E at camera hits on emitters (exact)
+                on_emitter = self.on_emitter & keep
+                with dr.scoped_set_flag(dr.JitFlag.SymbolicCalls, False):
+                    value = value + dr.select(on_emitter, self.emitter.eval(self.si, on_emitter), 0.0)
+            return dr.select(ok, value, 0.0), ok
+
+
+def _backward(params, weighted) -> np.ndarray:
+    """``∂/∂p Σ weighted`` over the lanes and channels of ``weighted`` (attached, under
+    ``tracking``), one reverse-mode pass: ``(P,)``; the parameters' gradients cleared after."""
+    with dr.resume_grad():
+        # no lane may depend on p (a texture only seen after two bounces): dz/dp is then 0
+        dr.backward(dr.sum(dr.sum(weighted, axis=None), axis=None), flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+    grads = [dr.grad(params.params[key]) for key in params.keys]
+    dr.eval(*grads)
+    out = np.concatenate([np.asarray(g, np.float64).reshape(-1) for g in grads])
+    for key in params.keys:
+        dr.clear_grad(params.params[key])
+    return out
 
 
 class NdrfRhs(OneBounce):
