@@ -8,7 +8,6 @@ float32 rounding: 1e-5 relative, 1e-7 absolute."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from services.solver.estimators.render import PathDepth
 
@@ -89,17 +88,62 @@ def test_frozen_jacobian_images_equal_traced_ones_as_the_parameters_move(mi):
     assert np.abs(images[2]).sum() > 1.2 * np.abs(images[0]).sum()   # brighter walls: more light to move
 
 
-@pytest.mark.slow
-def test_a_frozen_texture_gradient_equals_the_traced_one(mi):
+def _texture_problem():
+    problem = _problem("textured-floor", ["floor-paint.reflectance.data"])
+    rng = np.random.default_rng(3)
+    textures = [np.full(problem.parameters.n, 0.5)] + [rng.uniform(0.1, 0.9, problem.parameters.n) for _ in range(5)]
+    return problem, textures
+
+
+def test_a_frozen_texture_gradient_equals_the_traced_one_as_the_texture_changes(mi):
+    """The texture job is frozen (recorded, then replayed), and its texels' gradient is the traced
+    one: read inside the frozen call it was zero."""
     from services.solver.estimators.methods.prb import Prb
 
-    problem = _problem("textured-floor", ["floor-paint.reflectance.data"])
-    n = problem.parameters.n
-    rng = np.random.default_rng(3)
-    values = [np.full(n, 0.5), rng.uniform(0.1, 0.9, n)]
+    problem, textures = _texture_problem()
     target = np.full((16, 16, 3), 0.3, np.float32)
     depth = PathDepth(None, 5)
-    frozen = _calls(Prb(depth=depth, freeze=True), problem, values, [0, 0], target)
-    traced = _calls(Prb(depth=depth, freeze=False), problem, values, [0, 0], target)
+    prb = Prb(depth=depth, freeze=True)
+    sensors = [0, 1, 0, 1, 0, 1]
+    frozen = _calls(prb, problem, textures, sensors, target)
+    traced = _calls(Prb(depth=depth, freeze=False), problem, textures, sensors, target)
+    assert 0 < prb._frozen.n_recordings <= 4   # frozen: each view's first two calls at most record
     _agree(frozen, traced)
-    assert np.abs(frozen[1][2]).sum() > 0
+    for _, _, gradient in frozen:
+        assert np.abs(gradient).sum() > 0
+    # the replays saw the new texels: another texture, another gradient
+    assert not np.allclose(frozen[2][2], frozen[0][2], rtol=0.05)
+
+
+def test_a_texture_view_is_recorded_then_replayed_as_the_texture_changes(mi):
+    from services.solver.estimators.methods.prb import Prb
+
+    problem, textures = _texture_problem()
+    prb = Prb(depth=PathDepth(None, 5))
+    target = np.zeros((16, 16, 3), np.float32)
+    _calls(prb, problem, textures[:4], [0, 1, 0, 1], target)
+    recorded = prb._frozen.n_recordings
+    assert recorded <= 4
+    _calls(prb, problem, textures[::-1], [0, 1, 1, 0, 0, 1], target)
+    assert prb._frozen.n_recordings == recorded
+
+
+def test_frozen_texture_tangents_equal_traced_ones_as_the_texture_changes(mi):
+    """Forward mode along a few texels (the tangent pushed into the padded texture before the
+    frozen call: inside it, Dr.Jit refuses to cross the edge)."""
+    from services.solver.estimators.methods.prb import Prb
+
+    problem, textures = _texture_problem()
+    depth = PathDepth(None, 5)
+    frozen, traced = Prb(depth=depth, freeze=True), Prb(depth=depth, freeze=False)
+    tangents = []
+    for k, texture in enumerate(textures[:4]):
+        problem.parameters.assign(texture)
+        scalars = list(range(k, problem.parameters.n, 5 + k))
+        pair = [prb._forward(problem, scalars, 0, 2, 11 + k) for prb in (frozen, traced)]
+        np.testing.assert_allclose(pair[0][0], pair[1][0], **TOLERANCE)
+        np.testing.assert_allclose(pair[0][1], pair[1][1], **TOLERANCE)
+        assert np.abs(pair[0][1]).sum() > 0
+        tangents.append(pair[0][1])
+    assert frozen._frozen_tangent.n_recordings <= 2   # the first two calls at most record
+    assert not np.allclose(tangents[2], tangents[1], rtol=0.05)

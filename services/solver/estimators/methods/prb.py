@@ -23,10 +23,17 @@ iteration. ``candidate_and_gradient`` runs its render, loss and adjoint pass
 ``dr.freeze``: the first calls of each view (and spp, and group of scalars) record the kernels,
 later calls replay them with the current parameter values, seed and target as inputs.
 The replay computes what the traced call computes (``tests/unit/test_prb_frozen.py`` compares
-them); ``render.freeze: false`` traces every call instead. Jobs with a bitmap texture are traced:
-in Dr.Jit 1.5 the gradient from the texture to its ``data`` is lost inside a frozen function (the
-texture is built from the data by ``params.update()``, outside it, and the replay's inputs do not
-keep that edge): the frozen gradient of ``textured-floor``'s texels came out zero.
+them); ``render.freeze: false`` traces every call instead.
+
+Textures freeze too, with ``dz/dp`` read after the call. A frozen function runs in an isolated
+gradient scope (``dr.isolate_grad``): the adjoint pass inside it stops at the variables made
+before the call, and the edges from those to their own inputs are traversed when the call returns.
+Dr.Jit 1.5 stores a 3-channel texture padded to 4 channels, a copy derived from the bitmap's
+``data`` by ``params.update()``, outside the call: inside the call the gradient reaches that copy,
+not ``data`` (read there, ``dz/dp`` of ``textured-floor``'s texels came out zero); after it,
+``data`` has it, recorded or replayed. A scalar value is read by the render itself: inside or
+after, the same. Forward mode is seeded into the padded copy before the call
+(:func:`push_tangents`): inside it, Dr.Jit refuses to cross that edge.
 """
 
 from __future__ import annotations
@@ -68,40 +75,39 @@ def channel_groups(channels: list[tuple[int, ...]]) -> list[list[int]]:
 RECORDINGS = 64
 
 
-def differentiate(scene, params, target, seed, *, sensor: int, spp: int, spp_grad: int, integrator, keys: tuple[str, ...],
-                  kind: str):
+def differentiate(scene, params, target, seed, *, sensor: int, spp: int, spp_grad: int, integrator, kind: str):
     """One differentiable render of ``sensor`` and the adjoint pass of its loss (Eq. 10), in pure
     Dr.Jit (so that ``dr.freeze`` can record it). ``target`` ``(H, W, 3)``; ``seed`` an opaque
     ``UInt32``: the primal uses it, the adjoint pass Mitsuba's decorrelated ``sample_tea_32(seed,
-    1)``. Returns ``(image (H, W, C) detached, z, non-finite pixel count, [dz/dp of each key])``
-    and leaves the parameters' gradients cleared. The parameters of ``keys`` must track gradients."""
+    1)``. Returns ``(image (H, W, C) detached, z, non-finite pixel count)``; ``dz/dp`` is left in
+    the gradients of the parameters (which must track gradients), to be read after the call: a
+    frozen call's gradient reaches a texture's ``data`` only when it returns (module docstring)."""
     image = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, spp_grad=spp_grad, seed=seed)
     rgb = image[..., :3]
     z, dz_dy, bad = device_loss(kind, rgb, target)
     dr.backward(dr.sum(rgb * dz_dy, axis=None))
-    grads = [dr.grad(params[key]) for key in keys]
-    for key in keys:
-        dr.clear_grad(params[key])
-    return dr.detach(image), z, bad, grads
+    return dr.detach(image), z, bad
 
 
-def tangent_render(scene, params, tangents: dict, seed, *, sensor: int, spp: int, integrator):
-    """The render of ``sensor`` and its forward-mode derivative along ``tangents`` (``{key:
-    value-shaped tangent}``): ``(I, Σ_i t_i dI/dp_i)``, each ``(H, W, C)``; the primal with ``seed``,
-    the tangent with Mitsuba's decorrelated ``seed_grad``. In pure Dr.Jit (so that
-    ``dr.freeze`` can record it). The tangents are first pushed into values derived from the
-    parameters (a bitmap's texture), which the render's own isolated traversal would not reach.
-    Leaves the parameters' gradients cleared; the parameters must track gradients."""
+def push_tangents(params, tangents: dict) -> None:
+    """Seed forward mode with ``tangents`` (``{key: value-shaped tangent}``) and push them into
+    the values derived from the parameters (a bitmap's padded texture), which the render's own
+    traversal does not reach. Outside a frozen call: inside it the edges from the parameters to
+    those values lie outside its isolated gradient scope, which forward mode may not cross."""
     for key, tangent in tangents.items():
         dr.set_grad(params[key], tangent)
     dr.enqueue(dr.ADMode.Forward, *[params[key] for key in tangents])
     dr.traverse(dr.ADMode.Forward, dr.ADFlag.ClearEdges)
+
+
+def tangent_render(scene, params, seed, *, sensor: int, spp: int, integrator):
+    """The render of ``sensor`` and its forward-mode derivative along the tangents that
+    :func:`push_tangents` seeded: ``(I, Σ_i t_i dI/dp_i)``, each ``(H, W, C)``; the primal with
+    ``seed``, the tangent with Mitsuba's decorrelated ``seed_grad``. In pure Dr.Jit (so that
+    ``dr.freeze`` can record it)."""
     image = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seed)
     dr.forward_to(image)
-    grad = dr.grad(image)
-    for key in tangents:
-        dr.clear_grad(params[key])
-    return dr.detach(image), grad
+    return dr.detach(image), dr.grad(image)
 
 
 class Prb(GradientMethod):
@@ -157,16 +163,15 @@ class Prb(GradientMethod):
         """One forward-mode render: its primal image and ``Σ_i dI/dp_i`` over ``scalars``, each
         ``(H, W, 3)`` float64."""
         params = problem.parameters
-        step = self._frozen_tangent if self._freezes(params) else tangent_render
+        step = self._frozen_tangent if self.freeze else tangent_render
         with params.tracking():  # re-creates the edges from the parameters to what derives from them
-            primal, tangent = step(problem.scene.scene, params.params, params.tangents(scalars), opaque_seed(seed),
-                                   sensor=sensor, spp=spp, integrator=self.integrator)
+            tangents = params.tangents(scalars)
+            push_tangents(params.params, tangents)
+            primal, tangent = step(problem.scene.scene, params.params, opaque_seed(seed), sensor=sensor, spp=spp,
+                                   integrator=self.integrator)
+            for key in tangents:
+                dr.clear_grad(params.params[key])
             return np.array(primal, dtype=np.float64)[..., :3], np.array(tangent, dtype=np.float64)[..., :3]
-
-    def _freezes(self, params) -> bool:
-        """Whether this job's renders replay recorded kernels: ``freeze``, and no texture parameter
-        (its gradient does not survive a frozen function; module docstring)."""
-        return self.freeze and not any(info.texture for info in params.infos)
 
     def candidate_gradient_and_images(self, problem: Problem, fields: Fields, loss: Loss, *, spp: int,
                                       gradient_spp: int, seed: int, depth: PathDepth,
@@ -208,12 +213,14 @@ class Prb(GradientMethod):
                 z, dz_dy = loss(candidate)
                 dz_dp = self._backward(params, image, dz_dy)
             return candidate, z, dz_dp
-        step = self._frozen if self._freezes(params) else differentiate
+        step = self._frozen if self.freeze else differentiate
         with params.tracking():
-            image, z, bad, grads = step(problem.scene.scene, params.params, loss.device_target,
-                                        opaque_seed(derive_seed(seed, "primal")), sensor=sensor, spp=spp,
-                                        spp_grad=gradient_spp, integrator=self.integrator, keys=tuple(params.keys),
-                                        kind=loss.kind)
+            image, z, bad = step(problem.scene.scene, params.params, loss.device_target,
+                                 opaque_seed(derive_seed(seed, "primal")), sensor=sensor, spp=spp,
+                                 spp_grad=gradient_spp, integrator=self.integrator, kind=loss.kind)
+            grads = [dr.grad(params.params[key]) for key in params.keys]   # after the call: docstring
+            for key in params.keys:
+                dr.clear_grad(params.params[key])
             dr.eval(image, z, bad, *grads)
         if int(np.asarray(bad).reshape(-1)[0]):
             loss.sanitized(loss.WHERE, int(np.asarray(bad).reshape(-1)[0]))
