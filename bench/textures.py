@@ -13,6 +13,9 @@ every ``--every`` iterations; the texture PSNR against the true texture
 (:func:`services.solver.scene.textured.true_albedo`, peak 1) is read from those files. Seconds run
 on the events' clock from the plan (target rendering is outside it). Reported per variant: seconds
 per iteration (median), the first written iteration at >= 30 dB and its seconds, the final PSNR.
+``plain-traced`` is ``plain`` with ``render.freeze`` off (``prb`` re-traced every call), for what
+replaying recorded kernels saves a texture job, measured in the same process
+(``--variants plain-traced,plain --out bench/results/textures-freeze.json``).
 
 ``--million``: the same scene as XML with a 1000 x 1000 EXR texture and one 128 x 128 view, a job of
 ``--million-iterations`` iterations; reported: the iterations' seconds (median of the record's
@@ -46,11 +49,14 @@ VARIANTS = {
     "laplacian-small": {"smoothness": "laplacian", "smoothness_weight": 0.01},
     "tv-small": {"smoothness": "tv", "smoothness_weight": 0.003},
     "one-view-1spp": {},
+    "plain-traced": {},
 }
 #: Variants that change the batch instead of the textures settings: (job fields, iterations factor).
 #: ``one-view-1spp`` is the ``auto`` batch (one view, 1 spp) for 16x the iterations: a quarter of
 #: the samples of the others.
-BATCH = {"one-view-1spp": ({"views_per_iteration": 1, "render": {"spp": 1, "gradient_spp": 1}}, 16)}
+#: ``plain-traced`` is ``plain`` with ``render.freeze`` off: what replaying recorded kernels saves.
+BATCH = {"one-view-1spp": ({"views_per_iteration": 1, "render": {"spp": 1, "gradient_spp": 1}}, 16),
+         "plain-traced": ({"render": {"spp": 16, "gradient_spp": 16, "freeze": False}}, 1)}
 
 
 def _job(iterations: int, every: int, textures: dict, targets: dict, scene: dict | None = None) -> dict:
