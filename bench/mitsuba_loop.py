@@ -79,9 +79,13 @@ def grid(spps: list[int], rrs: list[int | None], views: list[int | None]) -> lis
 
 
 def run_loop(prepared, setting: LoopSetting, *, target_error: float, budget: float | None = None,
-             iterations: int | None = None, seed: int = 0) -> dict:
+             iterations: int | None = None, seed: int = 0, truth: np.ndarray | None = None) -> dict:
     """One run of the tutorial loop on a prepared job; returns its error curve (seconds since the
-    loop started) and the time it first reached ``target_error``."""
+    loop started; per iteration the max and the RMS of ``|p - truth|`` over every scalar, ``truth``
+    ``(P,)`` by default the job's synthetic target values) and the time it first reached
+    ``target_error`` (max). A frozen loop (``setting.freeze``) reads the gradients inside its frozen
+    function, which misses a 3-channel texture's (``services.solver.estimators.methods.prb``): run
+    texture jobs unfrozen, as the tutorial does."""
     import drjit as dr
     import mitsuba as mi
 
@@ -91,7 +95,9 @@ def run_loop(prepared, setting: LoopSetting, *, target_error: float, budget: flo
     sensors = sorted(prepared.targets)
     per_view = setting.views or len(sensors)
     total = iterations or max(1, spec.iterations * len(sensors) // per_view)
-    truth = prepared.target_values
+    truth = prepared.target_values if truth is None else truth
+    if truth is None:
+        raise ValueError("the loop's error needs the true values: a synthetic target, or truth=")
     lower, upper = prepared.lower, prepared.upper
     offsets = np.cumsum([0] + [info.size for info in problem.parameters.infos])
     depth = (-1, setting.rr_depth) if setting.rr_depth is not None else (DEPTH_WITHOUT_ROULETTE, DEPTH_WITHOUT_ROULETTE + 1)
@@ -127,7 +133,8 @@ def run_loop(prepared, setting: LoopSetting, *, target_error: float, budget: flo
         values = np.concatenate([np.asarray(params[key], np.float64).reshape(-1) for key in keys])
         error = float(np.max(np.abs(values - truth)))
         seconds = time.perf_counter() - start
-        curve.append({"iteration": it, "seconds": seconds, "error": error})
+        curve.append({"iteration": it, "seconds": seconds, "error": error,
+                      "rmse": float(np.sqrt(np.mean((values - truth) ** 2)))})
         if reached is None and error < target_error:
             reached = curve[-1]
         if budget is not None and seconds > budget:

@@ -17,6 +17,10 @@ per iteration (median), the first written iteration at >= 30 dB and its seconds,
 replaying recorded kernels saves a texture job, measured in the same process
 (``--variants plain-traced,plain --out bench/results/textures-freeze.json``).
 
+``--loop``: Mitsuba's tutorial loop on the same job and targets (:func:`run_loops`), a row per
+setting of ``--loop-spp`` x ``--loop-views``; its PSNR is measured every iteration, the product's
+every ``--every``: the loop's first time at 30 dB is the sharper of the two.
+
 ``--million``: the same scene as XML with a 1000 x 1000 EXR texture and one 128 x 128 view, a job of
 ``--million-iterations`` iterations; reported: the iterations' seconds (median of the record's
 phases), the preparation's seconds and the process's peak resident memory.
@@ -50,13 +54,18 @@ VARIANTS = {
     "tv-small": {"smoothness": "tv", "smoothness_weight": 0.003},
     "one-view-1spp": {},
     "plain-traced": {},
+    "every-view-4spp": {},
+    "every-view-1spp": {},
 }
 #: Variants that change the batch instead of the textures settings: (job fields, iterations factor).
 #: ``one-view-1spp`` is the ``auto`` batch (one view, 1 spp) for 16x the iterations: a quarter of
 #: the samples of the others.
-#: ``plain-traced`` is ``plain`` with ``render.freeze`` off: what replaying recorded kernels saves.
+#: ``every-view-4spp`` / ``-1spp``: every view at 4 / 1 spp for 4x / 16x the iterations (the samples of
+#: ``plain``). ``plain-traced`` is ``plain`` with ``render.freeze`` off: what replaying recorded kernels saves.
 BATCH = {"one-view-1spp": ({"views_per_iteration": 1, "render": {"spp": 1, "gradient_spp": 1}}, 16),
-         "plain-traced": ({"render": {"spp": 16, "gradient_spp": 16, "freeze": False}}, 1)}
+         "plain-traced": ({"render": {"spp": 16, "gradient_spp": 16, "freeze": False}}, 1),
+         "every-view-4spp": ({"render": {"spp": 4, "gradient_spp": 4}}, 4),
+         "every-view-1spp": ({"render": {"spp": 1, "gradient_spp": 1}}, 16)}
 
 
 def _job(iterations: int, every: int, textures: dict, targets: dict, scene: dict | None = None) -> dict:
@@ -116,6 +125,40 @@ def run_variant(name: str, iterations: int, every: int, targets: dict) -> dict:
            "reached_30db": reached, "final_psnr": final, "curve": curve}
     log.info("%s: final %.2f dB, reached 30 dB at %s", name, final, reached)
     return row
+
+
+def run_loops(iterations: int, targets: dict, spps: list[int], views: list[int | None], budget: float) -> list[dict]:
+    """Mitsuba's tutorial loop (:func:`bench.mitsuba_loop.run_loop`, Adam 0.03 decaying 10x, Russian
+    roulette from depth 5, unfrozen) on the same job and target images, one row per setting: each
+    runs as many iterations as give it the samples of ``iterations`` product iterations (every view
+    at 16 spp), at most ``budget`` seconds; the texture PSNR from the RMS error of every iteration."""
+    from bench.common import loop_rows
+    from bench.mitsuba_loop import LoopSetting, run_loop
+    from services.solver.scene.textured import true_albedo
+
+    truth = true_albedo().astype(np.float64).reshape(-1)
+    job = _job(iterations, iterations, {}, targets)
+    rows = []
+    for spp in spps:
+        for v in views:
+            setting = LoopSetting(spp, 5, v)
+            views_total = job["views_per_iteration"]
+            total = iterations * views_total * 16 // ((v or views_total) * spp)
+
+            def run(prepared, setting=setting, total=total):
+                run_loop(prepared, setting, target_error=0.0, iterations=2, truth=truth)   # compile, untimed
+                return run_loop(prepared, setting, target_error=0.0, iterations=total, budget=budget, truth=truth)
+
+            result, _ = loop_rows(job, run)
+            curve = [{"iteration": c["iteration"], "seconds": c["seconds"], "psnr": -20.0 * float(np.log10(c["rmse"]))}
+                     for c in result["curve"]]
+            reached = next((c for c in curve if c["psnr"] >= 30.0), None)
+            rows.append({"variant": setting.label, "settings": {"spp": spp, "views": v or views_total},
+                         "iterations": len(curve), "seconds": curve[-1]["seconds"],
+                         "seconds_per_iteration": result["seconds_per_iteration"], "reached_30db": reached,
+                         "final_psnr": curve[-1]["psnr"], "curve": curve[:: max(1, len(curve) // 60)]})
+            log.info("%s: final %.2f dB, reached 30 dB at %s", setting.label, curve[-1]["psnr"], reached)
+    return rows
 
 
 def run_million(iterations: int, size: int = 1000) -> dict:
@@ -183,6 +226,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--target-spp", type=int, default=1024)
     parser.add_argument("--variants", default=",".join(VARIANTS))
     parser.add_argument("--million", action="store_true", help="also time a 1000 x 1000 texture")
+    parser.add_argument("--loop", action="store_true", help="also run Mitsuba's tutorial loop on the same job")
+    parser.add_argument("--loop-spp", default="1,4,16", help="the loop's spp values")
+    parser.add_argument("--loop-views", default="1,all", help="the loop's views per iteration")
+    parser.add_argument("--loop-budget", type=float, default=60.0, help="seconds per loop setting at most")
     parser.add_argument("--million-iterations", type=int, default=2)
     parser.add_argument("--million-size", type=int, default=1000, help="texels per side of the large texture")
     parser.add_argument("--sandboxed", action="store_true", help="also run the large texture job in a worker's "
@@ -197,6 +244,9 @@ def main(argv: list[str] | None = None) -> None:
         targets = render_targets(args.target_spp)
         log.info("targets rendered in %.1f s", time.perf_counter() - started)
         rows = [run_variant(name, args.iterations, args.every, targets) for name in names]
+        if args.loop:
+            rows += run_loops(args.iterations, targets, [int(x) for x in args.loop_spp.split(",")],
+                              [None if x == "all" else int(x) for x in args.loop_views.split(",")], args.loop_budget)
     million = run_million(args.million_iterations, args.million_size) if args.million else None
     sandboxed = run_sandboxed(args.million_iterations, args.million_size) if args.sandboxed else None
     args.out.write_text(json.dumps({"machine": machine(), "rows": rows, "million": million, "sandboxed": sandboxed},
@@ -205,7 +255,7 @@ def main(argv: list[str] | None = None) -> None:
               f"{r['seconds_per_iteration']:.3f}",
               f"{r['reached_30db']['iteration']} ({r['reached_30db']['seconds']:.0f} s)" if r["reached_30db"] else "never",
               f"{r['final_psnr']:.2f}", f"{r['seconds']:.0f}"] for r in rows]
-    text = markdown_table(["variant", "textures settings", "iterations", "s / iteration", "first written "
+    text = markdown_table(["variant", "settings", "iterations", "s / iteration", "first measured "
                            "iteration >= 30 dB", "final PSNR (dB)", "seconds"], lines) if rows else ""
     if million is not None:
         side = million["shape"][0]
