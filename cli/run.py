@@ -45,7 +45,32 @@ def _progress_hooks(total: int):
     return progress, on_event
 
 
-def _final_table(summary: dict):
+def _texture_row(key: str, files: dict, out: Path) -> tuple[list[str], str]:
+    """A texture's row of the final table (its mean per channel: initial, final, target) and a
+    caption line (the file, and the PSNR against a synthetic target), from the job folder ``out``."""
+    import json
+
+    import numpy as np
+
+    from services.solver.optimize.textures import texture_error
+
+    def mean(summary_or_array) -> str:
+        values = summary_or_array["mean"] if isinstance(summary_or_array, dict) else summary_or_array.mean(axis=(0, 1))
+        return " ".join(f"{float(v):.3f}" for v in np.atleast_1d(values))
+
+    final = np.load(out / files["npy"])
+    plan = json.loads((out / "plan.json").read_text()) if (out / "plan.json").exists() else {}
+    init = next((t["init"] for t in plan.get("textures") or [] if t["key"] == key), None)
+    target = np.load(out / files["target"]) if files.get("target") and (out / files["target"]).exists() else None
+    label = f"{key} ({'x'.join(str(n) for n in final.shape)} texture, mean)"
+    row = [label, mean(init) if init else "", mean(final), mean(target) if target is not None else "-"]
+    caption = f"{key}: {files['npy']}"
+    if target is not None:
+        caption += f", PSNR {texture_error(final, target)['psnr']:.2f} dB against the target"
+    return row, caption
+
+
+def _final_table(summary: dict, out: Path):
     from rich.table import Table
 
     table = Table(title=f"{summary['method']}: {summary['status']} after {summary['iterations']} iterations "
@@ -55,8 +80,12 @@ def _final_table(summary: dict):
     targets = summary.get("target") or [math.nan] * len(summary["scalars"] or [])
     for label, init, final, target in zip(summary["scalars"] or [], summary["init"], summary["final"], targets):
         table.add_row(label, f"{init:.4f}", f"{final:.4f}", "-" if target is None or math.isnan(target) else f"{target:.4f}")
+    captions = []
     for key, files in (summary.get("textures") or {}).items():
-        table.add_row(f"{key} (texture)", "", files["npy"], "")
+        row, caption = _texture_row(key, files, out)
+        table.add_row(*row)
+        captions.append(caption)
+    table.caption = "\n".join(captions) or None
     return table
 
 
@@ -93,7 +122,7 @@ def run_command(job_path: str, out_dir: str, resume: bool, quiet: bool) -> None:
     finally:
         signal.signal(signal.SIGINT, previous)
     if summary.get("final") is not None:
-        console.print(_final_table(summary))
+        console.print(_final_table(summary, Path(out_dir)))
     if summary["status"] == "interrupted":
         raise click.ClickException(f"interrupted after {summary['iterations']} iteration(s): continue with "
                                    f"ndrf run {job_path} --out {out_dir} --resume")
