@@ -147,3 +147,28 @@ def test_frozen_texture_tangents_equal_traced_ones_as_the_texture_changes(mi):
         tangents.append(pair[0][1])
     assert frozen._frozen_tangent.n_recordings <= 2   # the first two calls at most record
     assert not np.allclose(tangents[2], tangents[1], rtol=0.05)
+
+
+def test_a_job_of_more_views_than_the_default_cache_still_replays(mi):
+    """70 views visited in turn: with the default cache (64 recordings, least recently used dropped)
+    every call would record again; :meth:`Prb.fit_views` sizes it to the views, so that a third
+    round over them records nothing. The scene: ``textured_floor``'s box with 70 cameras of 8 x 8."""
+    from services.solver.estimators.methods.prb import Prb
+    from services.solver.estimators.problem import Problem
+    from services.solver.scene.load import load_scene
+    from services.solver.scene.params import ParameterSet
+    from services.solver.scene.textured import textured_floor
+
+    views = 70
+    scene = load_scene(mitsuba_dict=textured_floor(size=2, views=views, film=8))
+    problem = Problem(scene, ParameterSet(scene.params, ["red.reflectance.value"]))
+    target = np.zeros((8, 8, 3), np.float32)
+    prb = Prb(depth=PathDepth(None, 3))
+    prb.fit_views(views, 1)
+    order = list(range(views))
+    _calls(prb, problem, [np.full(3, 0.5)] * views, order, target)
+    _calls(prb, problem, [np.full(3, 0.4)] * views, order, target)
+    recorded = prb._frozen.n_recordings
+    assert recorded > 64                        # more than the default cache holds
+    _calls(prb, problem, [np.full(3, 0.3)] * views, order, target)
+    assert prb._frozen.n_recordings == recorded

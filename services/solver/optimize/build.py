@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 from schemas.methods import Method
 from services.solver.estimators.methods import GradientMethod, make_method
-from services.solver.estimators.methods.prb import Prb
+from services.solver.estimators.methods.prb import Prb, channel_groups
 from services.solver.fields.field import NeuralField
 from services.solver.optimize.setup import Prepared, plan_for
 from services.solver.training.trainer import FieldTrainer, trainer_for
@@ -36,6 +36,7 @@ def build(prepared: Prepared, name: str, jacobian: str = "method") -> Built:
     method = make_method(name, prepared.problem.plan, prepared.depth)
     if isinstance(method, Prb):
         method.freeze = spec.render.freeze
+        method.fit_views(len(prepared.targets), len(channel_groups(list(prepared.problem.layout.channels))))
     if spec.training.head is not None:  # the many-parameter head (checked by setup.check: ndrf-rhs, first order)
         from services.solver.estimators.methods.head import NdrfHead
 

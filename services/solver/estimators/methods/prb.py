@@ -70,9 +70,13 @@ def channel_groups(channels: list[tuple[int, ...]]) -> list[list[int]]:
     return groups
 
 
-#: Most recordings a frozen render keeps (one per view and sample count); beyond it the least
-#: recently used is dropped and recorded again when needed.
+#: Fewest recordings a frozen render keeps (one per view and sample count); beyond its limit the
+#: least recently used is dropped and recorded again when needed (:meth:`Prb.fit_views` raises the
+#: limit to a job's views).
 RECORDINGS = 64
+#: Recordings one view may take per configuration: its first two calls may record (the first
+#: render evaluates state that the second finds evaluated).
+RECORDINGS_PER_VIEW = 2
 
 
 def differentiate(scene, params, target, seed, *, sensor: int, spp: int, spp_grad: int, integrator, kind: str):
@@ -123,8 +127,19 @@ class Prb(GradientMethod):
         self.integrator = depth.integrator("prb")
         #: whether ``candidate_and_gradient`` replays recorded kernels (module docstring)
         self.freeze = freeze
-        self._frozen = dr.freeze(differentiate, limit=RECORDINGS, warn_after=RECORDINGS)
-        self._frozen_tangent = dr.freeze(tangent_render, limit=RECORDINGS, warn_after=RECORDINGS)
+        self.fit_views(1, 1)
+
+    def fit_views(self, views: int, groups: int) -> None:
+        """Size the frozen renders' recording caches for ``views`` sensors and ``groups`` channel
+        groups of the Jacobian's forward-mode renders: a view visited in turn must find its
+        recording, or a job of more views than the cache holds records at every call (an LRU cache
+        cycled by more keys than it holds never hits). Drops the recordings made so far."""
+        if views < 1 or groups < 1:
+            raise ValueError(f"fit_views needs views >= 1 and groups >= 1, got {views} and {groups}")
+        gradient = max(RECORDINGS, RECORDINGS_PER_VIEW * views)
+        tangent = max(RECORDINGS, RECORDINGS_PER_VIEW * views * groups)
+        self._frozen = dr.freeze(differentiate, limit=gradient, warn_after=gradient)
+        self._frozen_tangent = dr.freeze(tangent_render, limit=tangent, warn_after=tangent)
 
     @classmethod
     def from_plan(cls, plan, depth):
