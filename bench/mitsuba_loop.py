@@ -60,18 +60,15 @@ class LoopSetting:
         return f"loop spp={self.spp} rr={rr} views={'all' if self.views is None else self.views}{frozen}"
 
 
-def _view_gradient(scene, params, target, seed, *, sensor: int, spp: int, integrator, keys: tuple[str, ...]):
-    """A frozen loop's view: the tutorial's render, loss and ``dr.backward``, the gradients returned
-    (they do not leave a frozen function through the parameters)."""
+def _view_gradient(scene, params, target, seed, *, sensor: int, spp: int, integrator):
+    """A frozen loop's view: the tutorial's render, loss and ``dr.backward``. The gradients are read
+    after the call: a frozen call is an isolated gradient scope, and a 3-channel texture's gradient
+    reaches its ``data`` only when the call returns (``services.solver.estimators.methods.prb``)."""
     import drjit as dr
     import mitsuba as mi
 
     image = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seed)
     dr.backward(dr.mean(dr.square(image[..., :3] - target)))
-    grads = [dr.grad(params[key]) for key in keys]
-    for key in keys:
-        dr.clear_grad(params[key])
-    return grads
 
 
 def grid(spps: list[int], rrs: list[int | None], views: list[int | None]) -> list[LoopSetting]:
@@ -83,9 +80,7 @@ def run_loop(prepared, setting: LoopSetting, *, target_error: float, budget: flo
     """One run of the tutorial loop on a prepared job; returns its error curve (seconds since the
     loop started; per iteration the max and the RMS of ``|p - truth|`` over every scalar, ``truth``
     ``(P,)`` by default the job's synthetic target values) and the time it first reached
-    ``target_error`` (max). A frozen loop (``setting.freeze``) reads the gradients inside its frozen
-    function, which misses a 3-channel texture's (``services.solver.estimators.methods.prb``): run
-    texture jobs unfrozen, as the tutorial does."""
+    ``target_error`` (max)."""
     import drjit as dr
     import mitsuba as mi
 
@@ -121,10 +116,8 @@ def run_loop(prepared, setting: LoopSetting, *, target_error: float, budget: flo
                                   seed=it * len(sensors) + int(sensor))
                 dr.backward(dr.mean(dr.square(image[..., :3] - targets[int(sensor)])))
                 continue
-            grads = frozen(scene, params, targets[int(sensor)], dr.opaque(mi.UInt32, it * len(sensors) + int(sensor)),
-                           sensor=int(sensor), spp=setting.spp, integrator=integrator, keys=tuple(keys))
-            for key, grad in zip(keys, grads):
-                dr.accum_grad(opt[key], grad)
+            frozen(scene, params, targets[int(sensor)], dr.opaque(mi.UInt32, it * len(sensors) + int(sensor)),
+                   sensor=int(sensor), spp=setting.spp, integrator=integrator)
         opt.step()
         for i, key in enumerate(keys):
             lo, hi = float(lower[offsets[i]]), float(upper[offsets[i]])
