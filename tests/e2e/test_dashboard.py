@@ -301,4 +301,8 @@ def test_a_texture_job_charts_its_texture_summaries(page, api, tmp_path):
     assert float(cells[3]) == pytest.approx(records[-1]["textures"][KEY]["psnr"], rel=1e-2)
     assert "appear when the job starts" not in page.get_by_test_id("parameters-card").text_content()
     assert page.get_by_test_id("parameter-error").text_content() == "—"         # no listed scalar to compare
+    # no per-scalar dI/dp block nor P x H x W x 3 download: the job lists no scalar (its gradient is a texture)
+    assert page.get_by_text("Gradient images dI/dp").is_hidden()
+    assert page.locator('a[href*="gradients.npy"]:visible').count() == 0
+    assert page.locator('[data-testid=texture-grid] figure[data-texture]').count() == 2   # the texture and its dz/dp
     page.screenshot(path=tmp_path / "texture-job.png", full_page=True)

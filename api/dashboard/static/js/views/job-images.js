@@ -36,6 +36,9 @@ export function imagesPanel(jobId) {
   const grid = h("div.gradient-grid", { dataset: { testid: "gradient-grid" } });
   const stackLink = h("a.link-small", { download: "" }, "all gradients (.npy)");
   const note = h("p.muted.small", "RGB sum of dI/dp per scalar; red = positive, blue = negative, grey = 0.");
+  // dI/dp per listed scalar (hidden for a pure texture job: its gradient is a texture, below)
+  const scalarGradients = h("div.gradients", { dataset: { testid: "scalar-gradients" } },
+    h("div.card-subhead", h("h3", "Gradient images dI/dp"), h("span.spacer"), stackLink), grid, note);
   // A texture parameter: its value and its gradient dz/dp (a texture too) at the iteration
   const textureGrid = h("div.gradient-grid", { dataset: { testid: "texture-grid" } });
   const textures = h("div.gradients", { hidden: true },
@@ -54,9 +57,7 @@ export function imagesPanel(jobId) {
       h("div.image-pair",
         h("figure.image-figure.missing", render, renderCaption),
         h("figure.image-figure.missing", target, h("figcaption", "Target"))),
-      h("div.gradients",
-        h("div.card-subhead", h("h3", "Gradient images dI/dp"), h("span.spacer"), stackLink),
-        grid, note),
+      scalarGradients,
       textures));
 
   function figures() {
@@ -112,6 +113,7 @@ export function imagesPanel(jobId) {
   /** New records (sorted by iteration) or plan: keep the slider and the images in step. */
   function update(records, plan) {
     const scalars = (plan && plan.scalars) || [];
+    scalarGradients.hidden = scalars.length === 0 && ((plan && plan.textures) || []).length > 0;
     if (scalars.join("\n") !== labels.join("\n")) {
       labels = scalars;
       figures();

@@ -229,7 +229,7 @@ export function jobView(root, jobId) {
       layers: PHASES.map(([phase, color]) => ({ label: phase, color, values: records.map((r) => (r.seconds || {})[phase]) })) });
     parameters.update(job.plan, records);
     images.update(records, job.plan);
-    drawDownloads(records);
+    drawDownloads(records, job.plan);
     const planText = JSON.stringify(job.plan);
     if (planText !== planShown) {
       planShown = planText;
@@ -298,16 +298,18 @@ export function jobView(root, jobId) {
     stats.eta.sub.textContent = finished ? job.status : `${remaining} iterations left`;
   }
 
-  function drawDownloads(records) {
+  function drawDownloads(records, plan) {
     const last = records[records.length - 1];
-    const withImages = records.findLast((r) => r.images);
-    const item = (href, label, note) => h("li", h("a", { href: authUrl(href), download: "" }, label),
-      note ? h("span.muted", ` ${note}`) : null);
+    // the P x H x W x 3 stack has the listed scalars only: a pure texture job writes none
+    const withImages = (plan?.scalars || []).length ? records.findLast((r) => r.images) : null;
+    const item = (href, label, note, testid) => h("li", h("a", { href: authUrl(href), download: "",
+      dataset: testid ? { testid } : {} }, label), note ? h("span.muted", ` ${note}`) : null);
     clear(downloads,
       last ? item(`${base}/checkpoints/latest`, "Latest checkpoint (.pt)", state.checkpoint !== null
         ? `resumes at iteration ${state.checkpoint}` : "fields, optimizers, parameters") : null,
       withImages ? item(`${base}/iterations/${withImages.iteration}/gradients.npy`,
-        `Gradients of iteration ${withImages.iteration} (.npy)`, "float32 P × H × W × 3") : null,
+        `Gradients of iteration ${withImages.iteration} (.npy)`, "float32 P × H × W × 3",
+        "gradients-download") : null,
       item(`${base}/iterations`, "Iteration records (JSON)"),
       item(base, "Job record (JSON)"));
   }
