@@ -56,16 +56,20 @@ VARIANTS = {
     "plain-traced": {},
     "every-view-4spp": {},
     "every-view-1spp": {},
+    "every-view-32spp": {},
+    "every-view-64spp": {},
 }
 #: Variants that change the batch instead of the textures settings: (job fields, iterations factor).
 #: ``one-view-1spp`` is the ``auto`` batch (one view, 1 spp) for 16x the iterations: a quarter of
 #: the samples of the others.
-#: ``every-view-4spp`` / ``-1spp``: every view at 4 / 1 spp for 4x / 16x the iterations (the samples of
-#: ``plain``). ``plain-traced`` is ``plain`` with ``render.freeze`` off: what replaying recorded kernels saves.
+#: ``every-view-<n>spp``: every view at n spp for 16/n times the iterations (the samples of ``plain``).
+#: ``plain-traced`` is ``plain`` with ``render.freeze`` off: what replaying recorded kernels saves.
 BATCH = {"one-view-1spp": ({"views_per_iteration": 1, "render": {"spp": 1, "gradient_spp": 1}}, 16),
          "plain-traced": ({"render": {"spp": 16, "gradient_spp": 16, "freeze": False}}, 1),
          "every-view-4spp": ({"render": {"spp": 4, "gradient_spp": 4}}, 4),
-         "every-view-1spp": ({"render": {"spp": 1, "gradient_spp": 1}}, 16)}
+         "every-view-1spp": ({"render": {"spp": 1, "gradient_spp": 1}}, 16),
+         "every-view-32spp": ({"render": {"spp": 32, "gradient_spp": 32}}, 0.5),
+         "every-view-64spp": ({"render": {"spp": 64, "gradient_spp": 64}}, 0.25)}
 
 
 def _job(iterations: int, every: int, textures: dict, targets: dict, scene: dict | None = None) -> dict:
@@ -109,7 +113,8 @@ def run_variant(name: str, iterations: int, every: int, targets: dict) -> dict:
                 clock[int(event["iteration"])] = time.perf_counter() - start[0]
 
         fields, factor = BATCH.get(name, ({}, 1))
-        job = dict(_job(iterations * factor, every * factor, VARIANTS[name], targets), **fields)
+        job = dict(_job(max(1, int(iterations * factor)), max(1, int(every * factor)), VARIANTS[name], targets),
+                   **fields)
         summary = run_local(JobSpec.model_validate(job), Path(tmp) / "job", on_event=on_event)
         folder = Path(tmp) / "job"
         curve = []

@@ -220,9 +220,9 @@ def texture_batch(spec: JobSpec, recipe: Recipe, sensors: int) -> None:
     job sets them. Each texel is seen by a few pixels only; at one view and 1 spp Adam's steps stay
     noise-dominated (``bench/results/textures-one-view.md``: 22.7 dB after 960 iterations, where
     every view at 16 spp reaches 34.8 dB in 60 iterations of the same total time,
-    ``bench/results/textures.md``); every view at 4 or 1 spp, for the samples of 60 iterations at
-    16, ends at 29.1 or 24.8 dB, short of the 30 dB that 16 spp reaches at iteration 20
-    (``bench/results/textures-spp.md``)."""
+    ``bench/results/textures.md``); every view at 1, 4, 32 or 64 spp, for the samples of 60
+    iterations at 16, ends at 24.8, 29.1, 29.8 or 21.7 dB, short of the 30 dB that 16 spp reaches
+    at iteration 20 (``bench/results/textures-spp.md``)."""
     recipe.views, recipe.adaptive_views = sensors, False
     recipe.decide("views", sensors, "a texture: every view per iteration (each texel is seen by few pixels; one view "
                                     "at a time leaves Adam's steps noise-dominated, bench/results/textures*.md)")
