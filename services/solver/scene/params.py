@@ -148,6 +148,8 @@ class ParameterSet:
                 raise ValueError(f"parameter {key!r} {reason}; optimizable keys: {', '.join(allowed) or 'none'}")
         self.params = params
         self.keys = list(keys)
+        #: the variables :meth:`tracking` enabled gradients on, by key (None outside it)
+        self._leaves: dict[str, object] | None = None
         self.infos = [allowed[k] for k in self.keys]
         self.owners = {k: _owner(params, k)[1] for k in self.keys}
         self.n = sum(info.size for info in self.infos)
@@ -206,16 +208,40 @@ class ParameterSet:
 
     @contextmanager
     def tracking(self) -> Iterator[None]:
-        """Enable gradient tracking on the selected parameters for the duration of the block."""
+        """Enable gradient tracking on the selected parameters for the duration of the block.
+
+        Each parameter is given a fresh leaf variable with its values (what ``mi.ad.Adam`` gives
+        Mitsuba's tutorial loop), and :meth:`gradients` reads those leaves: ``params[key]`` is a
+        view of the object's own field, which ``params.update()`` may replace by a variable derived
+        from the leaf. An environment map does: it stores its data with its wrap-around columns
+        refreshed, so after the update ``params[key]`` is that copy; enabling gradients on the
+        field in place left the copy without an edge to it, and ``dz/dp`` came out zero."""
+        leaves = {}
         for key in self.keys:
-            dr.enable_grad(self.params[key])
+            value = self.params[key]
+            leaf = type(value)(value)       # a new variable over the same values (no copy of the data)
+            dr.enable_grad(leaf)
+            self.params[key] = leaf
+            leaves[key] = leaf
         self.params.update()
+        self._leaves = leaves
         try:
             yield
         finally:
-            for key in self.keys:
-                dr.disable_grad(self.params[key])
+            self._leaves = None
+            for key, leaf in leaves.items():
+                self.params[key] = dr.detach(leaf)
             self.params.update()
+
+    def gradients(self) -> list:
+        """``dz/dp`` of each key (value-shaped Dr.Jit arrays) left by a backward pass inside
+        :meth:`tracking`, then cleared there."""
+        if self._leaves is None:
+            raise RuntimeError("gradients() reads the variables tracking() enabled: call it inside tracking()")
+        grads = [dr.grad(self._leaves[key]) for key in self.keys]
+        for key in self.keys:
+            dr.clear_grad(self._leaves[key])
+        return grads
 
     def tangent(self, index: int) -> tuple[str, object]:
         """The one-hot tangent selecting scalar ``index``: ``(key, value-shaped array)``."""

@@ -81,9 +81,7 @@ def _touched(problem: Problem, second: IncidentGeometry, seed: int) -> np.ndarra
             u = mi.Color3f(rng.random((3, lanes), dtype=np.float32))
             total = dr.sum(dr.select(dr.isfinite(emitted + throughput), (emitted + throughput) * u, 0.0), axis=None)
             dr.backward(total)
-        grads = [np.asarray(dr.grad(params.params[key]), np.float64).reshape(-1) for key in params.keys]
-        for key in params.keys:
-            dr.clear_grad(params.params[key])
+        grads = [np.asarray(g, np.float64).reshape(-1) for g in params.gradients()]
     return np.flatnonzero(np.concatenate(grads))
 
 

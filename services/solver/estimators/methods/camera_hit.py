@@ -314,12 +314,9 @@ def _backward(params, weighted) -> np.ndarray:
     with dr.resume_grad():
         # no lane may depend on p (a texture only seen after two bounces): dz/dp is then 0
         dr.backward(dr.sum(dr.sum(weighted, axis=None), axis=None), flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
-    grads = [dr.grad(params.params[key]) for key in params.keys]
+    grads = params.gradients()
     dr.eval(*grads)
-    out = np.concatenate([np.asarray(g, np.float64).reshape(-1) for g in grads])
-    for key in params.keys:
-        dr.clear_grad(params.params[key])
-    return out
+    return np.concatenate([np.asarray(g, np.float64).reshape(-1) for g in grads])
 
 
 class NdrfRhs(OneBounce):

@@ -233,9 +233,7 @@ class Prb(GradientMethod):
             image, z, bad = step(problem.scene.scene, params.params, loss.device_target,
                                  opaque_seed(derive_seed(seed, "primal")), sensor=sensor, spp=spp,
                                  spp_grad=gradient_spp, integrator=self.integrator, kind=loss.kind)
-            grads = [dr.grad(params.params[key]) for key in params.keys]   # after the call: docstring
-            for key in params.keys:
-                dr.clear_grad(params.params[key])
+            grads = params.gradients()   # after the call: module docstring
             dr.eval(image, z, bad, *grads)
         if int(np.asarray(bad).reshape(-1)[0]):
             loss.sanitized(loss.WHERE, int(np.asarray(bad).reshape(-1)[0]))
@@ -249,11 +247,7 @@ class Prb(GradientMethod):
         padded = np.zeros(tuple(image.shape), np.float32)  # films with an alpha channel render (H, W, 4)
         padded[..., :3] = dz_dy
         dr.backward(dr.sum(image * mi.TensorXf(padded), axis=None))
-        dz_dp = np.concatenate([np.asarray(dr.grad(params.params[key]), np.float64).reshape(-1)
-                                for key in params.keys])
-        for key in params.keys:
-            dr.clear_grad(params.params[key])
-        return dz_dp
+        return np.concatenate([np.asarray(g, np.float64).reshape(-1) for g in params.gradients()])
 
     def loss_gradient(self, problem: Problem, fields: Fields, dz_dy: np.ndarray, *, spp: int, seed: int,
                       sensor: int = 0) -> np.ndarray:
