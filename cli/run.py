@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -45,11 +46,10 @@ def _progress_hooks(total: int):
     return progress, on_event
 
 
-def _texture_row(key: str, files: dict, out: Path) -> tuple[list[str], str]:
-    """A texture's row of the final table (its mean per channel: initial, final, target) and a
-    caption line (the file, and the PSNR against a synthetic target), from the job folder ``out``."""
-    import json
-
+def _texture_row(key: str, files: dict, out: Path, init: dict | None) -> tuple[list[str], str]:
+    """A texture's row of the final table (its mean per channel: initial from the plan's summary
+    ``init``, final, target) and a caption line (the file, and the PSNR against a synthetic
+    target), from the job folder ``out``."""
     import numpy as np
 
     from services.solver.optimize.textures import texture_error
@@ -59,8 +59,6 @@ def _texture_row(key: str, files: dict, out: Path) -> tuple[list[str], str]:
         return " ".join(f"{float(v):.3f}" for v in np.atleast_1d(values))
 
     final = np.load(out / files["npy"])
-    plan = json.loads((out / "plan.json").read_text()) if (out / "plan.json").exists() else {}
-    init = next((t["init"] for t in plan.get("textures") or [] if t["key"] == key), None)
     target = np.load(out / files["target"]) if files.get("target") and (out / files["target"]).exists() else None
     label = f"{key} ({'x'.join(str(n) for n in final.shape)} texture, mean)"
     row = [label, mean(init) if init else "", mean(final), mean(target) if target is not None else "-"]
@@ -81,8 +79,11 @@ def _final_table(summary: dict, out: Path):
     for label, init, final, target in zip(summary["scalars"] or [], summary["init"], summary["final"], targets):
         table.add_row(label, f"{init:.4f}", f"{final:.4f}", "-" if target is None or math.isnan(target) else f"{target:.4f}")
     captions = []
-    for key, files in (summary.get("textures") or {}).items():
-        row, caption = _texture_row(key, files, out)
+    textures = summary.get("textures") or {}
+    plan = json.loads((out / "plan.json").read_text()) if textures and (out / "plan.json").exists() else {}
+    inits = {t["key"]: t.get("init") for t in plan.get("textures") or []}
+    for key, files in textures.items():
+        row, caption = _texture_row(key, files, out, inits.get(key))
         table.add_row(*row)
         captions.append(caption)
     table.caption = "\n".join(captions) or None

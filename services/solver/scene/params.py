@@ -243,6 +243,12 @@ class ParameterSet:
             dr.clear_grad(self._leaves[key])
         return grads
 
+    def gradient_vector(self) -> np.ndarray:
+        """:meth:`gradients` evaluated and flattened in the layout of the scalars: ``(P,)`` float64."""
+        grads = self.gradients()
+        dr.eval(*grads)
+        return np.concatenate([np.asarray(g, np.float64).reshape(-1) for g in grads])
+
     def tangent(self, index: int) -> tuple[str, object]:
         """The one-hot tangent selecting scalar ``index``: ``(key, value-shaped array)``."""
         scalar = self.scalars[index]

@@ -81,8 +81,7 @@ def _touched(problem: Problem, second: IncidentGeometry, seed: int) -> np.ndarra
             u = mi.Color3f(rng.random((3, lanes), dtype=np.float32))
             total = dr.sum(dr.select(dr.isfinite(emitted + throughput), (emitted + throughput) * u, 0.0), axis=None)
             dr.backward(total)
-        grads = [np.asarray(g, np.float64).reshape(-1) for g in params.gradients()]
-    return np.flatnonzero(np.concatenate(grads))
+        return np.flatnonzero(params.gradient_vector())
 
 
 def draw_head_batch(problem: Problem, n: int, m: int, scalars: int, seed: int,

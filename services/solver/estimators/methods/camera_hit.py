@@ -314,9 +314,7 @@ def _backward(params, weighted) -> np.ndarray:
     with dr.resume_grad():
         # no lane may depend on p (a texture only seen after two bounces): dz/dp is then 0
         dr.backward(dr.sum(dr.sum(weighted, axis=None), axis=None), flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
-    grads = params.gradients()
-    dr.eval(*grads)
-    return np.concatenate([np.asarray(g, np.float64).reshape(-1) for g in grads])
+    return params.gradient_vector()
 
 
 class NdrfRhs(OneBounce):

@@ -151,9 +151,7 @@ class NdrfHead(GradientMethod):
                 value, t1 = self._attached(problem, p)
                 with dr.resume_grad():
                     dr.backward(dr.sum(dr.sum(value * color(weight), axis=None), axis=None))
-                grads = params.gradients()
-                dr.eval(*grads)
-                total += np.concatenate([np.asarray(g, np.float64).reshape(-1) for g in grads])
+                total += params.gradient_vector()
             v += torch.einsum("kc,krc->r", (weight * rgb(t1)).double(), p.basis.double())
         with torch.no_grad():
             total += (head.coefficients.double().T @ v).numpy()

@@ -247,7 +247,7 @@ class Prb(GradientMethod):
         padded = np.zeros(tuple(image.shape), np.float32)  # films with an alpha channel render (H, W, 4)
         padded[..., :3] = dz_dy
         dr.backward(dr.sum(image * mi.TensorXf(padded), axis=None))
-        return np.concatenate([np.asarray(g, np.float64).reshape(-1) for g in params.gradients()])
+        return params.gradient_vector()
 
     def loss_gradient(self, problem: Problem, fields: Fields, dz_dy: np.ndarray, *, spp: int, seed: int,
                       sensor: int = 0) -> np.ndarray:
