@@ -12,7 +12,7 @@ from services.settings import Settings
 from services.store.job import JobFiles
 
 METRICS = ("loss", "residual_radiance", "residual_differential", "seconds", "sanitized", "parameter_error", "views",
-           "optimizer", "learning_rate", "textures")
+           "optimizer", "learning_rate", "textures", "estimate_error", "estimate_window")
 
 
 def job_public(record: JobRecord, files: JobFiles, settings: Settings, *, mint_token: bool = True) -> JobPublic:
@@ -20,7 +20,8 @@ def job_public(record: JobRecord, files: JobFiles, settings: Settings, *, mint_t
     plan = files.read(JobFiles.PLAN) or {}
     labels = plan.get("scalars") or []
     latest = files.iteration_record(record.iteration) if record.iteration is not None else None
-    values = latest["updated_parameters"] if latest else plan.get("init")
+    values = (latest.get("estimate") or latest["updated_parameters"]) if latest else plan.get("init")
+    errors = latest.get("standard_error") if latest else None
     target = plan.get("target_values")
     metrics = {k: latest.get(k) for k in METRICS if k in latest} if latest else None
     elapsed = eta = None
@@ -37,6 +38,7 @@ def job_public(record: JobRecord, files: JobFiles, settings: Settings, *, mint_t
         id=record.id, name=record.name, status=record.status, method=record.method, scene=record.scene,
         created=record.created, updated=record.updated, iteration=record.iteration, iterations=record.iterations,
         attempts=record.attempts, parameters=dict(zip(labels, values)) if labels and values else None,
+        standard_error=dict(zip(labels, errors)) if labels and errors else None,
         target=dict(zip(labels, target)) if labels and target else None, metrics=metrics, plan=plan or None,
         error=record.error, field=record.field, elapsed_seconds=elapsed, eta_seconds=eta,
         experiment=record.experiment, varied=record.varied, read_token=token,

@@ -100,7 +100,7 @@ def loop_rows(job: dict, run) -> tuple[dict, int]:
     from schemas.job import JobSpec
     from services.solver.optimize.setup import prepare
 
-    prepared = prepare(JobSpec.model_validate(job))
+    prepared, _ = prepare(JobSpec.model_validate(job))
     try:
         return run(prepared), len(prepared.targets)
     finally:

@@ -42,6 +42,8 @@ from bench.common import machine, markdown_table, write_markdown
 log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parent.parent
+#: Render seeds of the loop's run ``seed`` start at ``seed x RUN_SEEDS`` (its views, drawn with ``seed``, too).
+RUN_SEEDS = 1_000_000
 #: Path depth of the loop with Russian roulette off (the paths must end somewhere).
 DEPTH_WITHOUT_ROULETTE = 64
 
@@ -113,10 +115,11 @@ def run_loop(prepared, setting: LoopSetting, *, target_error: float, budget: flo
         for sensor in views:
             if frozen is None:
                 image = mi.render(scene, params, sensor=int(sensor), integrator=integrator, spp=setting.spp,
-                                  seed=it * len(sensors) + int(sensor))
+                                  seed=it * len(sensors) + int(sensor) + RUN_SEEDS * seed)
                 dr.backward(dr.mean(dr.square(image[..., :3] - targets[int(sensor)])))
                 continue
-            frozen(scene, params, targets[int(sensor)], dr.opaque(mi.UInt32, it * len(sensors) + int(sensor)),
+            frozen(scene, params, targets[int(sensor)], dr.opaque(mi.UInt32, it * len(sensors) + int(sensor)
+                                                                   + RUN_SEEDS * seed),
                    sensor=int(sensor), spp=setting.spp, integrator=integrator)
         opt.step()
         for i, key in enumerate(keys):
@@ -184,7 +187,7 @@ def main(argv: list[str] | None = None) -> None:
     from schemas.job import JobSpec
     from services.solver.optimize.setup import prepare
 
-    prepared = prepare(JobSpec.model_validate(json.loads(args.job.read_text())))
+    prepared, _ = prepare(JobSpec.model_validate(json.loads(args.job.read_text())))
     settings = grid(_values(args.spp, int), _values(args.rr, lambda v: None if v == "off" else int(v)),
                     _values(args.views, lambda v: None if v == "all" else int(v)))
     results = run_grid(prepared, settings, target_error=args.target_error, budget=args.budget)

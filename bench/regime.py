@@ -10,8 +10,8 @@ parameters, targets and iterations: what a user gets without tuning anything.
 
 Clock. Scene loading and target rendering are outside it for everyone. The loop's clock starts at
 its first iteration. The product's adds the seconds spent deciding (the effect probe and the depth
-check, ``plan.json``'s ``prepared_seconds.plan``, and the recipe's own measurements of the scene,
-``prepared_seconds.recipe``) to the time from the plan report
+check and the recipe's own measurements of the scene: ``plan.json``'s ``prepared_seconds.resolve``)
+to the time from the plan report
 to each iteration's record, so writing targets and records counts against it. Every row runs once
 untimed for two iterations first, so that no row pays Dr.Jit's kernel compilation and another
 not. Reported: seconds per iteration (median), when the largest parameter error first falls below
@@ -94,7 +94,7 @@ def run_product(job: dict, target_error: float, budget: float | None = None, ite
         plan = json.loads((Path(tmp) / "job" / "plan.json").read_text())
     gc.collect()
     planned = next(t for t, e in events if e["type"] == "plan")
-    decided = plan["prepared_seconds"]["plan"] + plan["prepared_seconds"].get("recipe", 0.0)
+    decided = plan["prepared_seconds"]["resolve"]
     curve = [{"iteration": e["iteration"], "seconds": decided + t - planned, "error": e["parameter_error"],
               "views": e["views"]} for t, e in events if e["type"] == "iteration"]
     reached = next((c for c in curve if c["error"] < target_error), None)

@@ -70,14 +70,16 @@ def gradient(args) -> dict:
     from services.solver.estimators.methods.prb import Prb
     from services.solver.estimators.render import render
     from services.solver.optimize.build import build
+    from services.solver.optimize.resolve import resolve
     from services.solver.optimize.setup import prepare
 
     spec = JobSpec.model_validate(job("ndrf-rhs", args.rank, target_spp=args.target_spp,
                                       training={"head": {"rank": args.rank}, "warmup_steps": args.steps,
                                                 "residual_points": args.points, "incident_samples": args.incident}))
-    prepared = prepare(spec)
+    prepared, measures = prepare(spec)
     problem = prepared.problem
-    built = build(prepared, "ndrf-rhs")
+    recipe = resolve(spec, problem.parameters, len(prepared.targets), measures)
+    built = build(prepared, recipe)
     assert built.trainer is not None
     started = time.perf_counter()
     built.trainer.train(args.steps)
@@ -86,11 +88,11 @@ def gradient(args) -> dict:
     zeroed = copy.deepcopy(fields.head)
     zeroed.coefficients.data.zero_()
     exact_only = type(fields)(fields.radiance, head=zeroed)
-    prb = Prb(depth=prepared.depth)
+    prb = Prb(depth=recipe.depth)
     sensors = sorted(prepared.targets)
     dz_dy = {}
     for s in sensors:
-        y = render(problem, spp=256, seed=1000 + s, sensor=s, depth=prepared.depth)
+        y = render(problem, spp=256, seed=1000 + s, sensor=s, depth=recipe.depth)
         dz_dy[s] = (2.0 * (y - prepared.targets[s]) / y.size).astype(np.float32)
 
     def total(method, f, spp, seed):

@@ -86,7 +86,7 @@ def render_targets(spp: int) -> dict:
     from services.store.images import npy_bytes
 
     spec = JobSpec.model_validate(_job(1, 1, {}, {"synthetic": {"values": {KEY: None}, "spp": spp}}))
-    prepared = prepare(spec)
+    prepared, _ = prepare(spec)
     return {"images": [{"sensor": s, "data": base64.b64encode(npy_bytes(np.asarray(image, np.float32))).decode()}
                        for s, image in sorted(prepared.targets.items())]}
 

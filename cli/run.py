@@ -73,11 +73,14 @@ def _final_table(summary: dict, out: Path):
 
     table = Table(title=f"{summary['method']}: {summary['status']} after {summary['iterations']} iterations "
                         f"({summary['seconds']:.0f} s)")
-    for column in ("parameter", "init", "final", "target"):
+    for column in ("parameter", "init", "final ± standard error", "target"):
         table.add_column(column, justify="left" if column == "parameter" else "right")
-    targets = summary.get("target") or [math.nan] * len(summary["scalars"] or [])
-    for label, init, final, target in zip(summary["scalars"] or [], summary["init"], summary["final"], targets):
-        table.add_row(label, f"{init:.4f}", f"{final:.4f}", "-" if target is None or math.isnan(target) else f"{target:.4f}")
+    scalars = summary["scalars"] or []
+    targets = summary.get("target") or [math.nan] * len(scalars)
+    errors = summary.get("standard_error") or [None] * len(scalars)
+    for label, init, final, error, target in zip(scalars, summary["init"], summary["final"], errors, targets):
+        value = f"{final:.4f}" + ("" if error is None else f" ± {error:.4f}")
+        table.add_row(label, f"{init:.4f}", value, "-" if target is None or math.isnan(target) else f"{target:.4f}")
     captions = []
     textures = summary.get("textures") or {}
     plan = json.loads((out / "plan.json").read_text()) if textures and (out / "plan.json").exists() else {}
@@ -86,6 +89,13 @@ def _final_table(summary: dict, out: Path):
         row, caption = _texture_row(key, files, out, inits.get(key))
         table.add_row(*row)
         captions.append(caption)
+    estimate, stopped = summary.get("estimate") or {}, summary.get("stopped") or {}
+    if estimate.get("window"):
+        first, last = estimate["window"]
+        captions.append(f"final: the estimate from iterations {first} to {last} ({estimate['kind']}); the last "
+                        f"iterate is summary.json's last_iterate")
+    if stopped.get("reason"):
+        captions.append(f"stopped: {stopped['reason']}")
     table.caption = "\n".join(captions) or None
     return table
 

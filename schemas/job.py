@@ -205,11 +205,37 @@ class TextureSettings(_Strict):
     smoothness_weight: float = Field(1.0, ge=0.0, le=1e6, description="Weight of the smoothness penalty, which is "
                                                                       "averaged over neighbour pairs (independent "
                                                                       "of the texture's size).")
+    resolution: Literal["auto", "full"] = Field(
+        "auto", description="The resolution a texture is optimized at. 'auto': its own, unless the pixels that see it "
+                            "directly (its footprint, measured before the first iteration) cannot pin its texels "
+                            "down, fewer than 4 pixels per texel: then blocks of 2x2, 4x4, ... texels move together "
+                            "(each block's gradient averaged), the smallest blocks that 4 pixels each see; plan.json "
+                            "gives the footprint and the choice. 'full': always its own resolution.")
     coarse_to_fine: int = Field(0, ge=0, le=8, description="Levels of a coarse-to-fine schedule: the first half of "
                                                            "the iterations is split into this many stages that "
                                                            "optimize the texture at 1/2^L, ..., 1/2 of its "
                                                            "resolution (the gradient averaged over blocks); 0: "
                                                            "full resolution throughout.")
+
+
+# ------------------------------------------------------------------------------------- stop
+
+class StopSettings(_Strict):
+    """When a run ends before ``iterations``, which stays the cap. The answer a run returns is
+    the estimate of its window with a standard error per scalar (``summary.json``); these settings
+    end the run once that answer is good enough, and ``plan.json``'s events say why it stopped."""
+
+    standard_error: float | None = Field(
+        None, gt=0, le=1e6, description="Stop once the standard error of every listed scalar is at most this (in "
+                                        "the scalar's own units; with relative, as a fraction of the scalar's "
+                                        "estimate). Null: no accuracy requested.")
+    relative: bool = Field(False, description="standard_error is relative: a scalar's standard error is compared "
+                                              "with standard_error x max(|estimate|, 0.01).")
+    auto: bool = Field(True, description="Stop by itself when more iterations would not improve the answer: once "
+                                         "the run's own Monte Carlo noise is under half of what the targets' noise "
+                                         "and the model's misfit leave in every scalar (doubling the run would "
+                                         "then lower the standard error by less than 6%). Needs the curvature of "
+                                         "second-order steps; a first-order run stops at iterations.")
 
 
 # -------------------------------------------------------------------------------------- job
@@ -298,6 +324,9 @@ class JobSpec(_Strict):
     effects: EffectOverrides = Field(default_factory=EffectOverrides, description="Overrides of the effect planner.")
     textures: TextureSettings = Field(default_factory=TextureSettings,
                                       description="Regularization of texture parameters (a bitmap's data).")
+    stop: StopSettings = Field(default_factory=StopSettings,
+                               description="When the run ends before iterations: at a requested standard error, or "
+                                           "when more iterations would not improve the answer.")
     checkpoint_every: int = Field(10, ge=1, le=100000, description="Write a checkpoint every K iterations.")
     images_every: int | None = Field(
         None, ge=1, le=100000, description="Write the renders of every view and the gradient images every K "
@@ -316,8 +345,10 @@ class JobSpec(_Strict):
     def fingerprint(self) -> str:
         """Hash of everything that changes the computation (not the name): a checkpoint is only
         loaded into the job it belongs to, and an Idempotency-Key only returns the same job. A job
-        without ``warm_start`` hashes as before the field existed."""
+        without ``warm_start``, and with the default ``stop``, hashes as before the field existed."""
         exclude = {"name"} if self.warm_start is not None else {"name", "warm_start"}
+        if self.stop == StopSettings():
+            exclude.add("stop")
         return hashlib.sha256(self.model_dump_json(exclude=exclude).encode()).hexdigest()[:16]
 
     @field_validator("adam_betas")

@@ -92,7 +92,16 @@ class IterationRecord(BaseModel):
                                                                "the iteration's steps.")
     residual_differential: float | None = Field(None, description="Mean residual norm of the differential field "
                                                                    "dL_theta.")
-    parameter_error: float | None = Field(None, description="max |p - target| (synthetic targets only).")
+    parameter_error: float | None = Field(None, description="max |p - target| of the parameters the step was taken at "
+                                                            "(synthetic targets only).")
+    estimate: list[float] | None = Field(None, description="The answer after this iteration: the best estimate of "
+                                                           "every listed scalar from the iterations of its window "
+                                                           "(services/solver/optimize/answer.py); what the run returns "
+                                                           "if it ends here.")
+    standard_error: list[float] | None = Field(None, description="The standard error of each scalar of estimate "
+                                                                 "(null while the window is too short to give one).")
+    estimate_window: list[int] | None = Field(None, description="[first, last] iteration the estimate averages.")
+    estimate_error: float | None = Field(None, description="max |estimate - target| (synthetic targets only).")
     images: bool = Field(False, description="Whether renders and gradient images were written this iteration.")
     textures: dict[str, dict[str, Any]] | None = Field(
         None, description="Per texture parameter, by key (texture jobs only; their texels are not in parameters, "
@@ -115,7 +124,12 @@ class JobPublic(BaseModel):
     iteration: int | None = Field(None, description="Last completed iteration (0-based), if any.")
     iterations: int = Field(description="Iterations requested.")
     attempts: int = Field(0, description="Attempts so far (a worker that dies leaves the job to another).")
-    parameters: dict[str, float] | None = Field(None, description="Latest parameter values, by scalar label.")
+    parameters: dict[str, float] | None = Field(None, description="The answer so far, by scalar label: the estimate of "
+                                                                   "the latest iteration (services/solver/optimize/"
+                                                                   "answer.py).")
+    standard_error: dict[str, float] | None = Field(None, description="The standard error of each scalar of "
+                                                                      "parameters, by label (null while too few "
+                                                                      "iterations were seen).")
     target: dict[str, float] | None = Field(None, description="Target values (synthetic targets only).")
     metrics: dict[str, Any] | None = Field(None, description="Latest iteration: loss, residual norms, seconds per "
                                                               "phase, sanitized sample counts, the texture "

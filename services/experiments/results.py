@@ -59,8 +59,8 @@ def job_metrics(files: JobFiles, record: JobRecord, target_error: float) -> dict
         total += sum(float(v) for v in (item.get("seconds") or {}).values())
         seconds.append(total)
         losses.append(finite_or_none(item.get("loss")))
-        updated = item.get("updated_parameters")
-        errors.append(_max_abs(updated, target))
+        answer = item.get("estimate") or item.get("updated_parameters")   # the answer had the run ended there
+        errors.append(_max_abs(answer, target))
     initial = _max_abs(plan.get("init"), target)
     reached = next((t for t, e in zip(seconds, errors) if e is not None and e <= target_error), None)
     if reached is None and initial is not None and initial <= target_error:

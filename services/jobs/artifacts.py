@@ -184,16 +184,19 @@ class JobWriter:
         plan = self.files.read(JobFiles.PLAN, {}) or {}
         summary = {"status": data["status"], "method": plan.get("method"), "iterations": data["iterations"],
                    "seconds": data["seconds"], "scalars": plan.get("scalars"), "init": plan.get("init"),
-                   "final": data.get("parameters"), "target": plan.get("target_values"),
+                   "final": data.get("parameters"), "standard_error": data.get("standard_error"),
+                   "last_iterate": data.get("last_iterate"), "estimate": data.get("estimate"),
+                   "stopped": data.get("stopped"), "target": plan.get("target_values"),
                    "error": data.get("error"), "field": data.get("field")}
         textures = [t["key"] for t in plan.get("textures") or []]
         if textures:   # the recovered textures' files (written at the end of a run that got there)
             summary["textures"] = {key: self._texture_files(key) for key in textures
                                    if self.files.store.exists(self.files.texture_key(None, key) + ".npy")}
-            for key, files in summary["textures"].items():   # a synthetic job's target texture
-                target = self._texture_files(f"{key}.target")
-                files.update({"target" if ext == "npy" else f"target_{ext}": name for ext, name in target.items()
-                              if ext != "png"})
+            for key, files in summary["textures"].items():   # a synthetic job's target texture, the error, the last
+                for suffix, name in (("target", "target"), ("standard_error", "standard_error"), ("last", "last")):
+                    extra = self._texture_files(f"{key}.{suffix}")
+                    files.update({name if ext == "npy" else f"{name}_{ext}": path for ext, path in extra.items()
+                                  if ext != "png" or suffix != "target"})
         if summary["final"] is not None and summary["target"] is not None and summary["final"]:
             summary["max_abs_error"] = float(np.max(np.abs(np.asarray(summary["final"]) - np.asarray(summary["target"]))))
         self.guard()

@@ -39,15 +39,14 @@ def test_losses_and_their_pixel_gradients():
 
 
 def test_learning_rate_decays_geometrically_to_the_final_ratio():
-    from schemas.job import JobSpec
-    from services.solver.optimize.loop import learning_rate
+    from services.solver.optimize.recipe import Steps
 
-    spec = JobSpec.model_validate({"scene": {"builtin": "cornell-box"}, "parameters": [{"key": "k"}],
-                                   "targets": {"synthetic": {"values": {"k": 0.5}}}, "iterations": 11,
-                                   "learning_rate": 0.2, "final_learning_rate_ratio": 0.01})
-    assert learning_rate(spec, 0) == pytest.approx(0.2)
-    assert learning_rate(spec, 5) == pytest.approx(0.02)
-    assert learning_rate(spec, 10) == pytest.approx(0.002)
+    steps = Steps(optimizer="adam", learning_rate=0.2, final_learning_rate_ratio=0.01, iterations=11,
+                  betas=(0.8, 0.99), damping=0.0, curvature="successive", curvature_every=1, trust_growth=1.5,
+                  trust_start=1.0)
+    assert steps.learning_rate_at(0) == pytest.approx(0.2)
+    assert steps.learning_rate_at(5) == pytest.approx(0.02)
+    assert steps.learning_rate_at(10) == pytest.approx(0.002)
 
 
 @pytest.mark.parametrize("kind", ["l2", "l1"])

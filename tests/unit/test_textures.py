@@ -234,19 +234,46 @@ def test_per_scalar_gradient_images_of_a_texture_job_are_refused(mi):
 def test_auto_gives_a_texture_job_every_view_and_16_spp_unless_set():
     from types import SimpleNamespace
 
-    from services.solver.estimators.layout import DerivativeLayout
-    from services.solver.optimize.recipe import TEXTURE_SPP, choose_recipe
+    from services.solver.optimize.resolve import TEXTURE_SPP, resolve
 
-    problem = SimpleNamespace(layout=DerivativeLayout.by_component([48]), plan=None,
-                              parameters=SimpleNamespace(has_textures=True, n=48))
-    recipe = choose_recipe(_job(), problem, 4)   # type: ignore[arg-type]
-    assert (recipe.method, recipe.optimizer, recipe.views, recipe.spp, recipe.gradient_spp) == (
+    import numpy as np
+
+    parameters = SimpleNamespace(has_textures=True, n=48, sizes=[48], textures=[("wall.reflectance.data", (4, 4, 3))])
+    measures = SimpleNamespace(closure=lambda: None, direct=lambda: [False] * 48,   # never asked for a texture
+                               footprint=lambda key, shape: np.full(shape[:2], 10))
+
+    def choose(spec):
+        return resolve(spec, parameters, 4, measures)   # type: ignore[arg-type]
+
+    recipe = choose(_job())
+    assert (recipe.method, recipe.steps.optimizer, recipe.batch.views, recipe.batch.spp, recipe.batch.gradient_spp) == (
         "prb", "adam", 4, TEXTURE_SPP, TEXTURE_SPP)
-    assert not recipe.adaptive_views and any("every view" in d.reason for d in recipe.decisions)
-    mine = choose_recipe(_job(render={"resolution": [16, 16], "spp": 2}), problem, 4)   # type: ignore[arg-type]
-    assert (mine.views, mine.spp, mine.gradient_spp) == (4, 2, 1)
-    chosen = choose_recipe(_job(views_per_iteration=2), problem, 4)   # type: ignore[arg-type]
-    assert (chosen.views, chosen.spp) == (2, 1)
+    assert not recipe.batch.grows and any("every view" in d.reason for d in recipe.decisions)
+    mine = choose(_job(render={"resolution": [16, 16], "spp": 2}))
+    assert (mine.batch.views, mine.batch.spp, mine.batch.gradient_spp) == (4, 2, 1)
+    chosen = choose(_job(views_per_iteration=2))
+    assert (chosen.batch.views, chosen.batch.spp) == (2, 1)
+    assert recipe.texture_blocks == (("wall.reflectance.data", 1),)                  # 10 pixels per texel: its own
+
+
+def test_a_texture_whose_pixels_cannot_pin_its_texels_moves_in_blocks_matched_to_its_footprint():
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from services.solver.optimize.resolve import PIXELS_PER_TEXEL, resolve
+
+    parameters = SimpleNamespace(has_textures=True, n=64 * 64 * 3, sizes=[64 * 64 * 3],
+                                 textures=[("wall.reflectance.data", (64, 64, 3))])
+    counts = np.zeros((64, 64), int)
+    counts[::2, ::2] = 3           # 0.75 pixels per texel; 4 x 4 blocks see 12 each, 2 x 2 blocks 3
+    measures = SimpleNamespace(closure=lambda: None, direct=lambda: [], footprint=lambda key, shape: counts)
+    recipe = resolve(_job(), parameters, 4, measures)   # type: ignore[arg-type]
+    assert recipe.texture_blocks == (("wall.reflectance.data", 4),)
+    said = {d.what: d for d in recipe.decisions}["resolution wall.reflectance.data"]
+    assert said.value == "16x16" and f"fewer than {PIXELS_PER_TEXEL} pixels per texel" in said.reason
+    full = resolve(_job(textures={"resolution": "full"}), parameters, 4, measures)   # type: ignore[arg-type]
+    assert full.texture_blocks == (("wall.reflectance.data", 1),)
 
 
 def test_scene_description_gives_a_texture_its_shape_and_mean(mi):
@@ -303,3 +330,22 @@ def test_an_uploaded_scene_s_files_travel_to_the_child_as_blobs():
     assert kind == "start" and started(meta, blobs) == start
     builtin = {"spec": {"scene": {"builtin": "cornell-box"}}}
     assert start_frame(builtin) == (builtin, {})
+
+
+def test_the_footprint_counts_the_pixels_that_see_each_texel(mi):
+    """The textured box's back wall fills the middle of each view: at 32x32 pixels per view, its
+    64x64 texels are seen by fewer pixels than they number, at 128x128 by more; a shape no camera
+    sees has an empty footprint."""
+    from services.solver.scene.footprint import pixels_per_texel, texel_footprint
+    from services.solver.scene.load import load_scene
+
+    small = texel_footprint(load_scene(builtin="textured-box", resolution=(32, 32)), "wall.reflectance.data",
+                            (64, 64, 3), [0, 1, 2, 3])
+    large = texel_footprint(load_scene(builtin="textured-box", resolution=(128, 128)), "wall.reflectance.data",
+                            (64, 64, 3), [0, 1, 2, 3])
+    assert small.shape == (64, 64) and 0 < small.sum() < 64 * 64 < large.sum()
+    assert large.sum() == pytest.approx(16 * small.sum(), rel=0.05)      # 16x the pixels, the same share of them
+    assert pixels_per_texel(small) < 1 <= pixels_per_texel(small, 4)
+    assert (large > 0).mean() > 0.95                                     # every view sees the whole wall
+    assert not texel_footprint(load_scene(builtin="textured-box", resolution=(32, 32)), "nothing.reflectance.data",
+                               (8, 8, 3), [0]).any()

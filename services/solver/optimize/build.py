@@ -1,22 +1,23 @@
-"""A gradient method, the source of its Jacobian and the trainer of their fields, built the way a
-run uses them.
+"""The objects of a run, built from its recipe (nerfstudio's config-to-object pattern): the
+problem narrowed to the recipe's effects, the gradient method, the trainer of exactly the fields
+it uses, the source of the second-order steps' Jacobian, and the optimizer. Nothing is decided
+here: every choice is the recipe's (:mod:`.resolve`).
 
-One place for what the loop needs: the effect plan for the method, the method shaped by it
-(``make_method``), the trainer of exactly the fields it uses (``trainer_for``), the cached camera
-first hits when the job asks for them (``render.candidate = "field"`` or ``render.first_hits =
-"cached"``), and, for ``jacobian: "differential-field"``, ``dL_theta`` queried at cached first hits
-as the Jacobian of the second-order steps whatever the gradient method (with ``prb``: the hybrid).
+The cached camera first hits serve ``render.candidate = "field"`` and ``render.first_hits =
+"cached"``; with ``jacobian: "differential-field"``, ``dL_theta`` queried at cached first hits is
+the Jacobian of the second-order steps whatever the gradient method (with ``prb``: the hybrid).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from schemas.methods import Method
 from services.solver.estimators.methods import GradientMethod, make_method
 from services.solver.estimators.methods.prb import Prb, channel_groups
 from services.solver.fields.field import NeuralField
-from services.solver.optimize.setup import Prepared, plan_for
+from services.solver.optimize.optimizers import ParameterOptimizer, make_optimizer
+from services.solver.optimize.recipe import Recipe
+from services.solver.optimize.setup import Prepared
 from services.solver.training.trainer import FieldTrainer, trainer_for
 
 
@@ -25,36 +26,53 @@ class Built:
     method: GradientMethod              # candidate and dz/dp
     trainer: FieldTrainer | None        # the fields, when the method or the Jacobian uses them
     jacobian: GradientMethod | None     # the Jacobian's source when it is not the method itself
+    optimizer: ParameterOptimizer
+
+    @property
+    def jacobian_source(self) -> GradientMethod:
+        return self.method if self.jacobian is None else self.jacobian
 
 
-def build(prepared: Prepared, name: str, jacobian: str = "method") -> Built:
-    """The method ``name`` on the prepared problem (re-planned for it), its Jacobian source and the
-    trainer of the fields they use (None when they use none)."""
-    spec = prepared.spec
-    hybrid = jacobian == "differential-field" and name != Method.NDRF_LHS
-    plan_for(prepared, str(Method.NDRF_LHS) if hybrid else name, jacobian)
-    method = make_method(name, prepared.problem.plan, prepared.depth)
+def apply_effects(prepared: Prepared, recipe: Recipe) -> None:
+    """Narrow the prepared problem to what the recipe simulates: its effects and its layout."""
+    problem = prepared.problem
+    if recipe.effects is not None:
+        problem.apply_plan(recipe.effects)
+    problem.layout = recipe.layout
+
+
+def build(prepared: Prepared, recipe: Recipe) -> Built:
+    """The run's objects (module docstring)."""
+    spec, problem = prepared.spec, prepared.problem
+    apply_effects(prepared, recipe)
+    method = make_method(recipe.method, problem.plan, recipe.depth)
     if isinstance(method, Prb):
         method.freeze = spec.render.freeze
-        method.fit_views(len(prepared.targets), len(channel_groups(list(prepared.problem.layout.channels))))
+        method.fit_views(len(prepared.targets), len(channel_groups(list(problem.layout.channels))))
     if spec.training.head is not None:  # the many-parameter head (checked by setup.check: ndrf-rhs, first order)
         from services.solver.estimators.methods.head import NdrfHead
 
         method = NdrfHead()
     render = spec.render
-    field_user = make_method(Method.NDRF_LHS, prepared.problem.plan, prepared.depth) if hybrid else method
-    trainer = trainer_for(prepared.problem, field_user, spec.training, spec.seed, radiance=render.candidate == "field")
+    hybrid = recipe.fields_for is not None and recipe.fields_for != recipe.method
+    field_user = make_method(recipe.fields_for, problem.plan, recipe.depth) if hybrid and recipe.fields_for else method
+    trainer = trainer_for(problem, field_user, spec.training, spec.seed, radiance=render.candidate == "field")
     if hybrid and trainer is not None and trainer.differential is None:
-        raise ValueError("jacobian 'differential-field' needs dL_theta, and the effect plan turned it off")
+        raise ValueError("jacobian 'differential-field' needs dL_theta, and the effects turned it off")
     jacobian_method = None
     if hybrid:
         jacobian_method = _cached(prepared, field_user, trainer, field_candidate=False, cached_lhs=True)
-    elif jacobian == "differential-field":  # ndrf-lhs: its own images are dL_theta, at cached hits
+    elif recipe.jacobian == "differential-field":  # ndrf-lhs: its own images are dL_theta, at cached hits
         render = render.model_copy(update={"first_hits": "cached"})
     if render.candidate == "field" or render.first_hits == "cached":
         method = _cached(prepared, method, trainer, field_candidate=render.candidate == "field",
                          cached_lhs=render.first_hits == "cached")
-    return Built(method, trainer, jacobian_method)
+    steps = recipe.steps
+    optimizer = make_optimizer(steps.optimizer, problem.parameters.n, lr=steps.learning_rate, betas=steps.betas,
+                               damping=steps.damping, trust_growth=steps.trust_growth, trust_start=steps.trust_start,
+                               curvature=steps.curvature, curvature_every=steps.curvature_every,
+                               views=len(prepared.targets))
+    return Built(method, trainer, jacobian_method, optimizer)
 
 
 def _cached(prepared: Prepared, method: GradientMethod, trainer: FieldTrainer | None, *, field_candidate: bool,
@@ -67,3 +85,4 @@ def _cached(prepared: Prepared, method: GradientMethod, trainer: FieldTrainer | 
     fields = [f for f in trainer.fields().values() if isinstance(f, NeuralField)] if trainer is not None else []
     cache = FirstHitCache(prepared.problem, sorted(prepared.targets), spec.render.gradient_spp, spec.seed, fields)
     return CachedFirstHits(method, cache, field_candidate=field_candidate, cached_lhs=cached_lhs)
+

@@ -2,9 +2,10 @@
 stores them; the solver never touches the store).
 
 A checkpoint holds the index of the next iteration, the parameter vector and its optimizer's state
-(Adam's moments, Levenberg-Marquardt's trust radius), the position in the stream of views and the
-batch (views, spp, gradient spp), the curvature in use and each view's last two Jacobians
-(block-averaged), both fields and their optimizers (via
+(Adam's moments; Levenberg-Marquardt's trust radius, its curvature and each view's last two
+Jacobians, block-averaged), the position in the stream of views and the batch (views, spp,
+gradient spp), the run's events (decisions taken on the way), the answer's iterations
+(:mod:`.answer`), both fields and their optimizers (via
 ``FieldTrainer.state_dict``, which includes the training-step counter that every sample seed
 derives from), torch's RNG state, the gradient method that ran, and a fingerprint of the job so
 that a checkpoint is never loaded into a different job. It is read with ``weights_only=True``:
@@ -22,20 +23,18 @@ from schemas.job import JobSpec
 
 
 def dumps(*, spec: JobSpec, next_iteration: int, parameters: np.ndarray, optimizer: dict, trainer: dict | None,
-          views_offset: int = 0, batch: tuple[int, int, int] = (1, 1, 1), hessian: np.ndarray | None = None,
-          jacobians: dict[int, list[tuple[np.ndarray, np.ndarray]]] | None = None, attempt: str | None = None,
-          method: str | None = None) -> bytes:
+          views_offset: int = 0, batch: tuple[int, int, int] = (1, 1, 1), events: list[dict] | None = None,
+          answer: dict | None = None, attempt: str | None = None, method: str | None = None) -> bytes:
     state = {
         "fingerprint": spec.fingerprint(),
         "method": method,
         "next_iteration": next_iteration,
         "parameters": np.asarray(parameters, np.float64).tolist(),
-        "optimizer": optimizer,
+        "optimizer": _tensors(optimizer),
         "views_offset": int(views_offset),
         "batch": [int(v) for v in batch],  # views per iteration, spp, gradient spp
-        "hessian": None if hessian is None else np.asarray(hessian, np.float64).tolist(),
-        "jacobians": {str(s): [(torch.from_numpy(np.asarray(at, np.float64)), torch.from_numpy(np.asarray(j, np.float64)))
-                               for at, j in pairs] for s, pairs in (jacobians or {}).items()},
+        "events": list(events or []),
+        "answer": _tensors(answer),
         "trainer": trainer,
         "torch_rng": torch.get_rng_state(),
         "attempt": attempt,
@@ -43,6 +42,17 @@ def dumps(*, spec: JobSpec, next_iteration: int, parameters: np.ndarray, optimiz
     buffer = io.BytesIO()
     torch.save(state, buffer)
     return buffer.getvalue()
+
+
+def _tensors(value):
+    """``value`` with every numpy array made a tensor (what ``weights_only`` loading accepts)."""
+    if isinstance(value, np.ndarray):
+        return torch.from_numpy(np.ascontiguousarray(value))
+    if isinstance(value, dict):
+        return {k: _tensors(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_tensors(v) for v in value)
+    return value
 
 
 def loads(blob: bytes, spec: JobSpec) -> dict:

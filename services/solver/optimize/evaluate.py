@@ -15,6 +15,8 @@ from schemas.job import JobSpec
 from services.solver.estimators.losses import image_loss
 from services.solver.estimators.methods import contract, make_method
 from services.solver.estimators.render import render
+from services.solver.optimize.build import apply_effects
+from services.solver.optimize.resolve import resolve
 from services.solver.optimize.setup import prepare
 from services.solver.seeds import derive_seed
 from services.solver.training.trainer import fields_of, trainer_for
@@ -32,13 +34,16 @@ class GradientEvaluation:
 
 def evaluate_gradient(spec: JobSpec, method_name: str, *, spp: int | None = None, train_steps: int | None = None,
                       scene_file: Path | None = None) -> GradientEvaluation:
-    prepared = prepare(spec, scene_file=scene_file, method=method_name)
+    spec = spec.model_copy(update={"method": method_name, "jacobian": "method"})
+    prepared, measures = prepare(spec, scene_file=scene_file)
+    recipe = resolve(spec, prepared.problem.parameters, len(prepared.targets), measures)
+    apply_effects(prepared, recipe)
     problem = prepared.problem
     if problem.parameters.has_textures:
         raise InvalidJob("parameters", f"the gradient images are one per scalar, {problem.parameters.n} for a texture "
                                        f"job: run the job instead (ndrf run); its images iterations write "
                                        f"textures/<key>.dz_dp.npy, the gradient as a texture")
-    method = make_method(method_name, problem.plan, prepared.depth)
+    method = make_method(method_name, problem.plan, recipe.depth)
     spp = spp or spec.render.gradient_spp
     steps = spec.training.warmup_steps if train_steps is None else train_steps
 
@@ -52,7 +57,7 @@ def evaluate_gradient(spec: JobSpec, method_name: str, *, spp: int | None = None
         images[sensor] = method.images(problem, fields_of(trainer), spp=spp,
                                        seed=derive_seed(spec.seed, "gradient", sensor), sensor=sensor)
         candidate = render(problem, spp=spec.render.spp, seed=derive_seed(spec.seed, "candidate", sensor),
-                           sensor=sensor, depth=prepared.depth)
+                           sensor=sensor, depth=recipe.depth)
         z, dz_dy = image_loss(spec.loss, candidate, target)
         loss += z
         dz_dp += contract(images[sensor], dz_dy)

@@ -34,13 +34,14 @@ import torch
 from schemas.job import JobSpec
 from schemas.methods import Method
 from schemas.views import ViewRequest
-from services.solver.estimators.layout import DerivativeLayout
 from services.solver.estimators.methods import Fields, make_method
 from services.solver.estimators.problem import Problem
 from services.solver.estimators.render import PathDepth
-from services.solver.optimize.setup import Prepared, check, needs_effect_plan, plan_for
+from services.solver.optimize.build import apply_effects
+from services.solver.optimize.recipe import Recipe
+from services.solver.optimize.resolve import resolve
+from services.solver.optimize.setup import Prepared, SceneMeasures, check
 from services.solver.scene.cameras import moved_sensor, perspective, sensor_pose, with_cameras
-from services.solver.scene.facts import probe_scene
 from services.solver.scene.load import LoadedScene
 from services.solver.scene.params import ParameterSet
 from services.solver.seeds import derive_seed
@@ -74,22 +75,19 @@ class Restored:
     seconds: float
 
 
-def planned_problem(spec: JobSpec, method: str, scene_file: Path | None = None) -> Prepared:
-    """The job's scene and scalars with the effect plan a run of ``method`` makes (the probe is
-    seeded by the job: the same plan, hence the same ``dL_theta`` outputs, as the run's), without
+def planned_problem(spec: JobSpec, method: str, scene_file: Path | None = None) -> tuple[Prepared, Recipe]:
+    """The job's scene and scalars with the effects a run of ``method`` chose (the probe is seeded
+    by the job: the same effects, hence the same ``dL_theta`` outputs, as the run's), without
     rendering targets."""
     c = check(spec, scene_file)
     problem = Problem(c.scene, c.parameters, delta_depth=spec.training.delta_depth)
-    if not spec.effects.merge_channels:
-        problem.layout = DerivativeLayout.full(c.parameters.n)
-    prepared = Prepared(spec, problem, c.init, c.lower, c.upper, {}, c.target_values,
-                        depth=PathDepth(spec.render.max_depth, spec.render.rr_depth))
-    hybrid = spec.jacobian == "differential-field" and method != Method.NDRF_LHS
-    name = str(Method.NDRF_LHS) if hybrid else method
-    if needs_effect_plan(name, spec.jacobian):  # probed as prepare() probes: at the scene's own values
-        prepared.facts = probe_scene(c.scene, c.parameters, seed=derive_seed(spec.seed, "probe"), max_delta_depth=64)
-    plan_for(prepared, name, spec.jacobian)
-    return prepared
+    prepared = Prepared(spec, problem, c.init, c.lower, c.upper, {}, c.target_values)
+    measures = SceneMeasures(prepared, c.parameters.values())
+    ran = spec.model_copy(update={"method": method})
+    recipe = resolve(ran, c.parameters, max(1, c.scene.sensor_count), measures)
+    apply_effects(prepared, recipe)
+    prepared.problem.parameters.assign(c.init)
+    return prepared, recipe
 
 
 def check_layout(problem: Problem, saved: dict, field: str = "checkpoint") -> None:
@@ -114,7 +112,7 @@ def restore(spec: JobSpec, blob: bytes, scene_file: Path | None = None, *, train
     method = str(state.get("method") or spec.method)
     if not saved or not saved.get("fields"):
         raise ValueError(f"the job's run ({method}) trained no field: nothing to view (prb and direct train none)")
-    prepared = planned_problem(spec, method, scene_file)
+    prepared, recipe = planned_problem(spec, method, scene_file)
     check_layout(prepared.problem, saved)
     config = spec.training if train else spec.training.model_copy(
         update={"pool": spec.training.pool.model_copy(update={"enabled": False})})
@@ -126,7 +124,7 @@ def restore(spec: JobSpec, blob: bytes, scene_file: Path | None = None, *, train
         raise ValueError(f"the checkpoint's fields do not fit the job's plan: {exc}") from None
     values = np.asarray(state["parameters"], np.float64)
     prepared.problem.parameters.assign(values)
-    return Restored(spec, prepared.problem, trainer, values, int(state["next_iteration"]), method, prepared.depth,
+    return Restored(spec, prepared.problem, trainer, values, int(state["next_iteration"]), method, recipe.depth,
                     time.perf_counter() - started)
 
 

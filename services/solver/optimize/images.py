@@ -17,7 +17,7 @@ import numpy as np
 from schemas.job import JobSpec
 from services.solver.estimators.methods import Fields, GradientMethod
 from services.solver.estimators.methods.cached import CachedFirstHits
-from services.solver.estimators.render import render
+from services.solver.estimators.render import PathDepth, render
 from services.solver.seeds import derive_seed
 
 
@@ -50,7 +50,8 @@ class ImageSchedule:
 
 
 def render_views(prepared, method: GradientMethod, fields: Fields, candidates: dict[int, np.ndarray],
-                 k: int, spp: int, gradient_spp: int) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+                 k: int, spp: int, gradient_spp: int,
+                 depth: PathDepth) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
     """The candidate ``(H, W, 3)`` and the gradient images ``(P, H, W, 3)`` of every view at the
     current parameters (``candidates`` holds those the iteration rendered already). A job with a
     texture parameter writes no gradient images (P of them would be one per texel): its gradient
@@ -65,7 +66,7 @@ def render_views(prepared, method: GradientMethod, fields: Fields, candidates: d
         elif isinstance(method, CachedFirstHits) and method.field_candidate:
             image = method.cache.candidate(sensor, fields.radiance)
         else:
-            image = render(problem, spp=spp, seed=seed, sensor=sensor, depth=prepared.depth)
+            image = render(problem, spp=spp, seed=seed, sensor=sensor, depth=depth)
         renders[sensor] = np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
         if per_scalar:
             gradients[sensor] = np.nan_to_num(method.images(problem, fields, spp=gradient_spp, seed=seed,

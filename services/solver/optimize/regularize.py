@@ -11,6 +11,9 @@
                   it differentiable): favours piecewise-constant textures, keeps edges.
 
                 The reported loss stays the image loss ``z(y)``; ``R`` enters only the step.
+``resolution``  ``auto``: a texture whose footprint is too small for its texels moves in blocks of
+                ``B x B`` texels throughout (:mod:`services.solver.optimize.resolve`); the gradient is
+                averaged over each block as in a coarse stage below.
 ``coarse_to_fine``  ``L`` levels: the first half of the iterations is split evenly into ``L`` stages
                 whose gradient is averaged over blocks of ``2^L, ..., 2`` texels per side and
                 given to every texel of the block. A texture that starts uniform within each block
@@ -79,11 +82,14 @@ def pooled(gradient: np.ndarray, block: int) -> np.ndarray:
 
 
 def regularized(report: TextureReport, settings: TextureSettings, gradient: np.ndarray, parameters: np.ndarray,
-                k: int, iterations: int) -> np.ndarray:
-    """``dz/dp`` ``(P,)`` with the textures' smoothness gradient added and, during the coarse
-    stages, averaged over blocks; unchanged for a job without a texture or without settings."""
-    block = block_size(settings, k, iterations)
-    if not report or (settings.smoothness == "none" and block == 1):
+                k: int, iterations: int, blocks: dict[str, int] | None = None) -> np.ndarray:
+    """``dz/dp`` ``(P,)`` with the textures' smoothness gradient added and averaged over blocks:
+    a texture's own ``blocks[key]`` (the resolution the recipe matched to its footprint) or, during
+    the coarse stages, the schedule's, whichever is larger; unchanged for a job without a texture
+    or without settings."""
+    stage = block_size(settings, k, iterations)
+    blocks = blocks or {}
+    if not report or (settings.smoothness == "none" and stage == 1 and max(blocks.values(), default=1) == 1):
         return gradient
     out = np.array(gradient, np.float64)
     for texture in report.textures:
@@ -92,5 +98,5 @@ def regularized(report: TextureReport, settings: TextureSettings, gradient: np.n
         if settings.smoothness != "none":
             g = g + smoothness_gradient(parameters[where].reshape(texture.shape), settings.smoothness,
                                         settings.smoothness_weight)
-        out[where] = pooled(g, block).reshape(-1)
+        out[where] = pooled(g, max(stage, blocks.get(texture.key, 1))).reshape(-1)
     return out

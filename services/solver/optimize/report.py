@@ -69,6 +69,10 @@ class RunOutcome:
     status: Outcome  # never ``fenced``: that is the host's verdict on an attempt, not the run's
     iterations: int
     seconds: float
-    parameters: list[float] | None = None
+    parameters: list[float] | None = None        # the answer: the estimate of every listed scalar
     error: str | None = None
     field: str | None = None
+    standard_error: list[float] | None = None    # of each scalar of ``parameters`` (None: too few iterations)
+    last_iterate: list[float] | None = None      # the parameters of the last step, not averaged
+    estimate: dict | None = None                 # how the answer was formed: kind, window
+    stopped: dict | None = None                  # why the run stopped: the decision, with its reason

@@ -17,22 +17,21 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from schemas.errors import InvalidJob
 from schemas.job import BuiltinScene, ImageTargets, JobSpec, SyntheticTargets
-from schemas.methods import AUTO, Method
-from services.solver.estimators.layout import DerivativeLayout
-from services.solver.estimators.methods import method_class
 from services.solver.estimators.problem import Problem
-from services.solver.estimators.render import UNBIASED, PathDepth, missing_energy, render
+from services.solver.estimators.render import PathDepth, missing_energy, render
 from services.solver.optimize.carry import check_carry, check_head
 from services.solver.optimize.textures import TextureReport
-from services.solver.scene.facts import SceneFacts, probe_scene
+from services.solver.scene.closure import closure
+from services.solver.scene.facts import SceneFacts, direct_reach, probe_scene
+from services.solver.scene.footprint import texel_footprint
 from services.solver.scene.load import LoadedScene, load_scene
 from services.solver.scene.params import ParameterSet
-from services.solver.scene.planner import plan_effects
 from services.solver.scene.targets import ImageDecodeError, decode_image
 from services.solver.seeds import derive_seed
 
@@ -44,13 +43,12 @@ MIN_ROUGHNESS = 1e-3
 
 @dataclass
 class Prepared:
-    """A job ready to run: ``init``, ``lower``, ``upper`` are ``(P,)``; ``targets`` maps a sensor
-    index to its ``(H, W, 3)`` target; ``target_values`` is ``(P,)`` for synthetic targets;
-    ``depths`` describes the path depths of the synthetic target (``target``) and of the
-    path-traced candidate and ``prb`` (``render``, which is ``depth``), with any warning;
-    ``seconds`` what preparing took: ``load`` (scene and checks), ``plan`` (the effect probe and
-    the depth check: decisions), ``targets`` (rendering synthetic targets); the loop adds
-    ``recipe`` (the recipe's measurements of the scene: closure, direct reach)."""
+    """A job ready to be resolved and run: ``init``, ``lower``, ``upper`` are ``(P,)``; ``targets``
+    maps a sensor index to its ``(H, W, 3)`` target; ``target_values`` is ``(P,)`` for synthetic
+    targets; ``target_depth`` the path depth the synthetic targets were rendered with; ``seconds``
+    what preparing took: ``load`` (scene and checks) and ``targets`` (rendering synthetic
+    targets). Nothing here is decided: :func:`services.solver.optimize.resolve.resolve` decides,
+    from the measurements of :class:`SceneMeasures`."""
 
     spec: JobSpec
     problem: Problem
@@ -59,14 +57,72 @@ class Prepared:
     upper: np.ndarray
     targets: dict[int, np.ndarray]
     target_values: np.ndarray | None
-    depths: dict = field(default_factory=dict)
-    facts: SceneFacts | None = None
-    depth: PathDepth = UNBIASED
+    target_depth: PathDepth | None = None
     seconds: dict = field(default_factory=dict)
     textures: TextureReport = field(init=False)   # the listed scalars and the textures of p
 
     def __post_init__(self):
         self.textures = TextureReport(self.problem.parameters)
+
+
+class SceneMeasures:
+    """The measurements of a prepared job's scene that :func:`~.resolve.resolve` may ask for
+    (:class:`~.resolve.Measures`), each taken once, when first asked, and timed (``seconds``: the
+    time deciding took, which the benchmarks charge to the product).
+
+    ``facts``    the effect probe, at the scene file's own values (as every run has probed: a
+                 checkpoint's ``dL_theta`` layout and a view of it must agree)
+    ``closure``  the share of reflected light that hits another surface (geometry only)
+    ``direct``   per scalar, whether it is seen directly, at the initial values
+    ``missing_energy``  the share of the light a truncated path depth misses, at the initial values
+    ``footprint``  per texel of a texture, the pixels of the target views that see it directly
+    """
+
+    def __init__(self, prepared: Prepared, scene_values: np.ndarray):
+        self.prepared = prepared
+        self.scene_values = scene_values
+        self.seconds: dict[str, float] = {}
+        self._taken: dict[str, object] = {}
+
+    def _measure(self, name: str, take: Callable[[], Any]) -> Any:
+        if name not in self._taken:
+            started = time.perf_counter()
+            self._taken[name] = take()
+            self.seconds[name] = time.perf_counter() - started
+        return self._taken[name]
+
+    def facts(self) -> SceneFacts:
+        prepared = self.prepared
+        problem, seed = prepared.problem, prepared.spec.seed
+
+        def probe() -> SceneFacts:
+            problem.parameters.assign(self.scene_values)
+            try:
+                return probe_scene(problem.scene, problem.parameters, seed=derive_seed(seed, "probe"),
+                                   max_delta_depth=64)
+            finally:
+                problem.parameters.assign(prepared.init)
+
+        return self._measure("facts", probe)
+
+    def closure(self) -> float | None:
+        problem = self.prepared.problem
+        return self._measure("closure", lambda: closure(problem.scene, seed=self.prepared.spec.seed))
+
+    def direct(self) -> list[bool]:
+        problem = self.prepared.problem
+        return self._measure("direct", lambda: direct_reach(problem.scene, problem.parameters,
+                                                            seed=self.prepared.spec.seed))
+
+    def footprint(self, key: str, shape: tuple[int, ...]) -> np.ndarray:
+        prepared = self.prepared
+        return self._measure(f"footprint {key}", lambda: texel_footprint(prepared.problem.scene, key, shape,
+                                                                         sorted(prepared.targets)))
+
+    def missing_energy(self, depth: PathDepth) -> float:
+        problem = self.prepared.problem
+        return self._measure("missing_energy", lambda: missing_energy(
+            problem, depth, seed=derive_seed(self.prepared.spec.seed, "depth")))
 
 
 def load_job_scene(spec: JobSpec, scene_file: Path | None = None) -> LoadedScene:
@@ -196,91 +252,31 @@ def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None
     return Checked(scene, parameters, init_v, lower_v, upper_v, targets, target_values)
 
 
-def prepare(spec: JobSpec, *, scene_file: Path | None = None, method: str | None = None,
-            on_phase: Callable[[str], None] = lambda what: None) -> Prepared:
-    """Load and check everything a job needs, plan the effects to simulate (for ``method``,
-    default the job's; ``prb``'s for an ``auto`` job), and render synthetic targets (unbiased:
-    unbounded paths with Russian roulette, unless the job fixes ``targets.synthetic.max_depth``).
-    ``on_phase`` hears what is being done, before each phase that may take long (a texture job's
-    scene load and targets; the effect probe)."""
+def prepare(spec: JobSpec, *, scene_file: Path | None = None,
+            on_phase: Callable[[str], None] = lambda what: None) -> tuple[Prepared, SceneMeasures]:
+    """Load and check everything a job needs and render its synthetic targets (unbiased: unbounded
+    paths with Russian roulette, unless the job fixes ``targets.synthetic.max_depth``); the scene
+    is left at the initial values. Returns the prepared job and the measurements
+    :func:`~.resolve.resolve` may take of its scene. ``on_phase`` hears what is being done, before
+    each phase that may take long."""
     started = time.perf_counter()
     on_phase("loading and checking the scene")
     c = check(spec, scene_file)
+    scene_values = c.parameters.values()
     loaded = time.perf_counter()
     problem = Problem(c.scene, c.parameters, delta_depth=spec.training.delta_depth)
-    if not spec.effects.merge_channels:
-        problem.layout = DerivativeLayout.full(c.parameters.n)
-    name = method or (Method.PRB if spec.method == AUTO else spec.method)
-    facts = None
-    if needs_effect_plan(name, spec.jacobian) and spec.training.head is None:
-        on_phase(f"probing the scene's effects for {c.parameters.n} scalars (forward-mode derivatives)")
-        facts = probe_scene(c.scene, c.parameters, seed=derive_seed(spec.seed, "probe"), max_delta_depth=64)
-        problem.apply_plan(plan_effects(facts, name, method_class(name).uses, spec.effects, spec.training.delta_depth))
-    warnings: list[str] = []
-    depths = _depths(spec, problem, c, warnings)
-    for warning in problem.plan.warnings if problem.plan is not None else []:
-        log.warning("effect plan: %s", warning)
-    planned = time.perf_counter()
-    targets = dict(c.targets)
+    targets, target_depth = dict(c.targets), None
     if c.target_values is not None:
         assert isinstance(spec.targets, SyntheticTargets)  # target values come from synthetic targets only
         synthetic = spec.targets.synthetic
+        target_depth = PathDepth(synthetic.max_depth, synthetic.rr_depth)
         on_phase(f"rendering {c.scene.sensor_count} synthetic target(s) at {synthetic.spp} spp")
         c.parameters.assign(c.target_values)
         for sensor in range(c.scene.sensor_count):
             targets[sensor] = render(problem, spp=synthetic.spp, sensor=sensor,
-                                     seed=derive_seed(spec.seed, "target", sensor), depth=depths["target"])
+                                     seed=derive_seed(spec.seed, "target", sensor), depth=target_depth)
     c.parameters.assign(c.init)
     log.info("prepared job: %d scalars, %d target(s)", c.parameters.n, len(targets))
-    described: dict = {name: depth.describe() for name, depth in depths.items()}
-    if warnings:
-        described["warnings"] = warnings
-    seconds = {"load": loaded - started, "plan": planned - loaded, "targets": time.perf_counter() - planned}
-    return Prepared(spec, problem, c.init, c.lower, c.upper, targets, c.target_values, described, facts,
-                    depths["render"], seconds)
-
-
-def needs_effect_plan(method: str, jacobian: str = "method") -> bool:
-    """Whether a run of ``method`` needs the effect planner's probe: when it trains a field (the
-    planner decides which and for which scalars). ``prb`` simulates every effect by path tracing,
-    and its channel groups are known from the parameters' shapes
-    (:meth:`~services.solver.estimators.layout.DerivativeLayout.by_component`)."""
-    return bool(method_class(method).uses) or jacobian == "differential-field"
-
-
-def plan_for(prepared: Prepared, method: str, jacobian: str = "method") -> None:
-    """Plan the prepared problem's effects for ``method`` (probing the scene the first time a
-    method needs the plan); nothing to do for a method that needs none."""
-    spec = prepared.spec
-    if not needs_effect_plan(method, jacobian) or spec.training.head is not None:
-        return  # the many-parameter head simulates every effect (no per-scalar plan of P scalars)
-    if prepared.facts is None:
-        problem = prepared.problem
-        problem.parameters.assign(prepared.init)
-        prepared.facts = probe_scene(problem.scene, problem.parameters, seed=derive_seed(spec.seed, "probe"),
-                                     max_delta_depth=64)
-    prepared.problem.apply_plan(plan_effects(prepared.facts, method, method_class(method).uses, spec.effects,
-                                             spec.training.delta_depth))
-
-
-def _depths(spec: JobSpec, problem: Problem, c: Checked, warnings: list[str]) -> dict[str, PathDepth]:
-    """The path depths of the synthetic target (``target``) and of the path-traced candidate,
-    ``prb`` and its Jacobian (``render``): unbounded with Russian roulette unless the job fixes a
-    depth. A fixed depth that misses light at the initial values is a loud warning in the plan:
-    photographs have every bounce, so the optimizer would make up for the missing light with
-    brighter materials."""
-    depths = {"render": PathDepth(spec.render.max_depth, spec.render.rr_depth)}
-    if c.target_values is not None:
-        assert isinstance(spec.targets, SyntheticTargets)
-        synthetic = spec.targets.synthetic
-        depths["target"] = PathDepth(synthetic.max_depth, synthetic.rr_depth)
-    render_depth = depths["render"]
-    if not render_depth.unbiased:
-        missing = missing_energy(problem, render_depth, seed=derive_seed(spec.seed, "depth"))
-        if missing > 1e-3:
-            warnings.append(
-                f"render.max_depth {render_depth.max_depth} misses {missing:.1%} of the image's light at the initial "
-                f"values (more where materials are brighter): the recovered parameters are biased; leave "
-                f"render.max_depth unset for unbounded paths with Russian roulette")
-            log.warning("path depth: %s", warnings[-1])
-    return depths
+    seconds = {"load": loaded - started, "targets": time.perf_counter() - loaded}
+    prepared = Prepared(spec, problem, c.init, c.lower, c.upper, targets, c.target_values, target_depth, seconds)
+    return prepared, SceneMeasures(prepared, scene_values)

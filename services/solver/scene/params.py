@@ -164,6 +164,16 @@ class ParameterSet:
         return self._scalars
 
     @property
+    def sizes(self) -> list[int]:
+        """Scalars of each parameter, in order."""
+        return [info.size for info in self.infos]
+
+    @property
+    def textures(self) -> list[tuple[str, tuple[int, ...]]]:
+        """``(key, shape)`` of each texture parameter."""
+        return [(info.key, info.shape) for info in self.infos if info.texture and info.shape is not None]
+
+    @property
     def has_textures(self) -> bool:
         return any(info.texture for info in self.infos)
 

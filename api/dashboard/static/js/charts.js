@@ -93,11 +93,12 @@ function axes(root, f, xTicks, yTicks, sx, sy) {
 }
 
 /**
- * Line chart of `series` [{label, color, points: [[x, y]], dashed}] with optional horizontal
- * dashed `guides` [{y, color}] (targets). Log y drops non-positive values. Hovering shows the
- * values at the nearest x of the first series.
+ * Line chart of `series` [{label, color, points: [[x, y]], dashed, faint}] with optional horizontal
+ * dashed `guides` [{y, color}] (targets) and shaded `bands` [{color, points: [[x, low, high]]}]
+ * (an estimate ± 2 standard errors). Log y drops non-positive values. Hovering shows the values at
+ * the nearest x of the first series.
  */
-export function lineChart(el, { series, guides = [], logY = false, height = 210, format = fmtNum }) {
+export function lineChart(el, { series, guides = [], bands = [], logY = false, height = 210, format = fmtNum }) {
   const f = frame(el, height);
   const ok = ([x, y]) => Number.isFinite(x) && Number.isFinite(y) && (!logY || y > 0);
   const lines = series.map((s) => ({ ...s, points: s.points.filter(ok) }));
@@ -106,7 +107,10 @@ export function lineChart(el, { series, guides = [], logY = false, height = 210,
   const ty = logY ? Math.log10 : (y) => y;
   const [xMin, xMax] = extent(all.map((p) => p[0]));
   const [x0, x1] = [xMin, Math.max(xMax, xMin + 1)];
-  const ys = all.map((p) => ty(p[1])).concat(guides.filter((g) => Number.isFinite(g.y)).map((g) => ty(g.y)));
+  const spans = bands.map((b) => ({ ...b, points: b.points.filter(([x, lo, hi]) => [x, lo, hi].every(Number.isFinite)
+    && (!logY || lo > 0)) }));
+  const ys = all.map((p) => ty(p[1])).concat(guides.filter((g) => Number.isFinite(g.y)).map((g) => ty(g.y)))
+    .concat(spans.flatMap((b) => b.points.flatMap(([, lo, hi]) => [ty(lo), ty(hi)])));
   const [y0, y1] = domain(ys, 0.06, logY ? 0.5 : Math.max(1e-3, Math.abs(ys[0]) * 0.2));
   const sx = (x) => MARGIN.left + ((x - x0) / (x1 - x0)) * f.plotW;
   const sy = (v) => MARGIN.top + (1 - (v - y0) / (y1 - y0)) * f.plotH;
@@ -114,6 +118,12 @@ export function lineChart(el, { series, guides = [], logY = false, height = 210,
     .map((v) => ({ value: v, label: format(logY ? 10 ** v : v) }));
   axes(f.root, f, linearTicks(x0, x1, Math.max(2, Math.floor(f.plotW / 70)), true), yTicks, sx, sy);
 
+  for (const b of spans) {
+    if (b.points.length < 2) continue;
+    const upper = b.points.map(([x, , hi]) => `${sx(x).toFixed(1)},${sy(ty(hi)).toFixed(1)}`);
+    const lower = b.points.slice().reverse().map(([x, lo]) => `${sx(x).toFixed(1)},${sy(ty(lo)).toFixed(1)}`);
+    f.root.append(svg("path", { d: `M${upper.join("L")}L${lower.join("L")}Z`, fill: b.color, class: "chart-band" }));
+  }
   for (const g of guides) {
     if (!Number.isFinite(g.y) || (logY && g.y <= 0)) continue;
     f.root.append(svg("line", { x1: MARGIN.left, x2: MARGIN.left + f.plotW, y1: sy(ty(g.y)), y2: sy(ty(g.y)),
@@ -126,7 +136,8 @@ export function lineChart(el, { series, guides = [], logY = false, height = 210,
       continue;
     }
     const d = s.points.map(([x, y], i) => `${i ? "L" : "M"}${sx(x).toFixed(1)},${sy(ty(y)).toFixed(1)}`).join("");
-    f.root.append(svg("path", { d, stroke: s.color, class: s.dashed ? "chart-line chart-dashed" : "chart-line" }));
+    const style = s.dashed ? "chart-line chart-dashed" : s.faint ? "chart-line chart-faint" : "chart-line";
+    f.root.append(svg("path", { d, stroke: s.color, class: style }));
   }
   hover(el, f, lines, sx, sy, ty, format);
   el.replaceChildren(f.root);

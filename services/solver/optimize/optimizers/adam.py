@@ -36,7 +36,8 @@ class Adam(ParameterOptimizer):
         self.t = 0
 
     def step(self, p: np.ndarray, gradient: np.ndarray, lower: np.ndarray, upper: np.ndarray, *,
-             lr: float | None = None, hessian: np.ndarray | None = None) -> np.ndarray:
+             lr: float | None = None, hessian: np.ndarray | None = None,
+             jacobians: dict[int, list[np.ndarray]] | None = None) -> np.ndarray:
         """One update; returns the new (projected) parameters, shape ``(n,)``."""
         g = np.asarray(gradient, np.float64)
         check_finite(g)

@@ -4,9 +4,10 @@ An optimizer turns one iteration's gradient ``∇z = dz/dp`` ``(P,)`` (Eq. 10), 
 second-order rules the Gauss-Newton curvature ``H`` ``(P, P)``, into the next parameters,
 projected onto their bounds. Each subclass states its update rule in its docstring.
 
-``needs_curvature``   whether :meth:`step` needs ``H``: the loop then asks the gradient method
-                      (or the Jacobian source the job names) for the Jacobian ``J = dy/dp`` of the
-                      iteration's views and assembles ``H`` (:func:`.gauss_newton.gauss_newton_hessian`)
+``curvature``         the second-order rules' :class:`~.curvature.Curvature` (None for Adam):
+                      :meth:`jacobians_wanted` says which views' Jacobians ``J = dI/dp`` an
+                      iteration measures, and :meth:`step` takes them (block-averaged, ``(P, n)``)
+                      and updates ``H`` before stepping
 ``noise_dominated``   whether the recent steps look like noise rather than progress (second-order
                       steps that keep reversing): ``views_per_iteration: "auto"`` then doubles
                       the batch
@@ -19,9 +20,12 @@ it as the job's failure instead of writing NaN parameters.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from services.solver.optimize.optimizers.curvature import Curvature
 
 
 class ParameterOptimizer(ABC):
@@ -29,12 +33,30 @@ class ParameterOptimizer(ABC):
 
     name: ClassVar[str]
     needs_curvature: ClassVar[bool] = False
+    curvature: Curvature | None = None
+
+    def jacobians_wanted(self, k: int, views: list[int]) -> tuple[list[int], int]:
+        """The views of iteration ``k``'s batch whose Jacobian the step needs, and how many
+        independent estimates of each (none for a first-order rule)."""
+        return ([], 0) if self.curvature is None else self.curvature.wanted(k, views)
 
     @abstractmethod
     def step(self, p: np.ndarray, gradient: np.ndarray, lower: np.ndarray, upper: np.ndarray, *, lr: float,
-             hessian: np.ndarray | None = None) -> np.ndarray:
+             hessian: np.ndarray | None = None,
+             jacobians: dict[int, list[np.ndarray]] | None = None) -> np.ndarray:
         """The next parameters ``(P,)``, within ``[lower, upper]``; ``lr`` is this iteration's
-        learning rate (the job's schedule)."""
+        learning rate (the job's schedule). A second-order rule takes ``hessian`` as given, or
+        updates its curvature from ``jacobians`` (``{view: [J (P, n), ...]}``, as
+        :meth:`jacobians_wanted` asked) first."""
+
+    def hessian(self, p: np.ndarray, lr: float, hessian: np.ndarray | None,
+                jacobians: dict[int, list[np.ndarray]] | None) -> np.ndarray:
+        """A second-order step's ``H``: the one given, or the curvature updated by ``jacobians``."""
+        if hessian is not None:
+            return hessian
+        if self.curvature is None:
+            raise ValueError(f"{self.name} needs the curvature H of the iteration")
+        return self.curvature.update(jacobians or {}, np.asarray(p, np.float64), lr)
 
     def noise_dominated(self) -> bool:
         return False

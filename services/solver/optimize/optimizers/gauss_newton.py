@@ -1,4 +1,4 @@
-"""Gauss-Newton curvature from the Jacobian, the damped step, and the Gauss-Newton optimizer.
+"""The damped Gauss-Newton step and the Gauss-Newton optimizer (the curvature ``H`` and its estimates: :mod:`.curvature`).
 
 For the ``l2`` loss ``z = (1/n) Σ (y - t)²`` over the ``n`` values of a view's image, with
 ``J = dy/dp`` the gradient images of Eq. 3, shape ``(P, H, W, 3)``, the Gauss-Newton model of
@@ -26,48 +26,18 @@ it with its eigenvalues raised to at least ``1e-6`` of the largest.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from services.solver.optimize.optimizers.base import ParameterOptimizer, check_finite
+from services.solver.optimize.optimizers.curvature import BLOCK, gauss_newton_hessian, hessian_of, jacobian_matrix
 
-#: Pixel blocks averaged before ``JᵀJ`` (module docstring): the noise term of a 1-spp ``J`` falls 16x.
-BLOCK = 4
+if TYPE_CHECKING:
+    from services.solver.optimize.optimizers.curvature import Curvature
 
-
-def jacobian_matrix(images: np.ndarray, block: int = 1) -> np.ndarray:
-    """``(P, H, W, C)`` -> ``(P, n)`` float64 with ``block x block`` pixel blocks averaged (the
-    rows and columns beyond a multiple of ``block`` are dropped)."""
-    if images.ndim != 4:
-        raise ValueError(f"gradient images must be (P, H, W, C), got shape {images.shape}")
-    if block < 1:
-        raise ValueError(f"block must be >= 1, got {block}")
-    p, h, w, c = images.shape
-    if block <= 1 or h < block or w < block:
-        return images.reshape(p, -1).astype(np.float64)
-    hb, wb = h // block, w // block
-    cropped = images[:, :hb * block, :wb * block].astype(np.float64)
-    return cropped.reshape(p, hb, block, wb, block, c).mean((2, 4)).reshape(p, -1)
-
-
-def hessian_of(jac: np.ndarray, other: np.ndarray | None = None) -> np.ndarray:
-    """``(2/n) JᵀJ`` of a ``(P, n)`` Jacobian matrix, or with ``other`` (an independent estimate of
-    it) the cross product ``(1/n) (J_aᵀJ_b + J_bᵀJ_a)``. Returns ``(P, P)`` float64."""
-    if other is None:
-        return 2.0 / jac.shape[1] * (jac @ jac.T)
-    if other.shape != jac.shape:
-        raise ValueError(f"the two Jacobian estimates differ in shape: {jac.shape} and {other.shape}")
-    cross = jac @ other.T
-    return (cross + cross.T) / jac.shape[1]
-
-
-def gauss_newton_hessian(images: np.ndarray, other: np.ndarray | None = None, *, block: int = 1) -> np.ndarray:
-    """``(2/n) JᵀJ`` for gradient images ``J`` of shape ``(P, H, W, C)`` averaged over ``block``
-    pixel blocks; with ``other``, an independent estimate of the same ``J``, the unbiased cross
-    product ``(1/n) (J_aᵀJ_b + J_bᵀJ_a)`` (module docstring). Returns ``(P, P)`` float64."""
-    if other is not None and other.shape != images.shape:
-        raise ValueError(f"the two Jacobian estimates differ in shape: {images.shape} and {other.shape}")
-    return hessian_of(jacobian_matrix(images, block), None if other is None else jacobian_matrix(other, block))
-
+__all__ = ["BLOCK", "GaussNewton", "damped_step", "free_scalars", "gauss_newton_hessian", "gauss_newton_step",
+           "hessian_of", "jacobian_matrix"]
 
 def _positive(h: np.ndarray, floor: float = 1e-6) -> np.ndarray:
     """``h`` with its eigenvalues raised to at least ``floor`` times the largest (unchanged if
@@ -125,18 +95,19 @@ class GaussNewton(ParameterOptimizer):
     name = "gauss-newton"
     needs_curvature = True
 
-    def __init__(self, damping: float):
+    def __init__(self, damping: float, curvature: Curvature | None = None):
         if damping < 0:
             raise ValueError(f"damping must be >= 0, got {damping}")
         self.damping = damping
+        self.curvature = curvature
 
-    def step(self, p, gradient, lower, upper, *, lr, hessian=None):
-        if hessian is None:
-            raise ValueError("gauss-newton needs the curvature H of the iteration")
-        return gauss_newton_step(p, gradient, hessian, lower, upper, lr=lr, damping=self.damping)
+    def step(self, p, gradient, lower, upper, *, lr, hessian=None, jacobians=None):
+        return gauss_newton_step(p, gradient, self.hessian(p, lr, hessian, jacobians), lower, upper, lr=lr,
+                                 damping=self.damping)
 
     def state_dict(self) -> dict:
-        return {}
+        return {} if self.curvature is None else {"curvature": self.curvature.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
-        pass
+        if self.curvature is not None and "curvature" in state:
+            self.curvature.load_state_dict(state["curvature"])

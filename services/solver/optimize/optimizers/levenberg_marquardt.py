@@ -40,10 +40,15 @@ count restarts): ``views_per_iteration: "auto"`` then doubles the batch, which h
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from services.solver.optimize.optimizers.base import ParameterOptimizer
 from services.solver.optimize.optimizers.gauss_newton import damped_step, free_scalars
+
+if TYPE_CHECKING:
+    from services.solver.optimize.optimizers.curvature import Curvature
 
 #: The default first radius and the largest, in units of ``lr_0``, and the default growth on agreeing
 #: capped steps. The default first radius is Adam's first step. A faster start (4x, or growth 2)
@@ -64,7 +69,8 @@ class LevenbergMarquardt(ParameterOptimizer):
     name = "levenberg-marquardt"
     needs_curvature = True
 
-    def __init__(self, size: int, lr: float, damping: float, grow: float = GROW, start: float = INITIAL):
+    def __init__(self, size: int, lr: float, damping: float, grow: float = GROW, start: float = INITIAL,
+                 curvature: Curvature | None = None):
         if not lr > 0:
             raise ValueError(f"learning rate must be > 0, got {lr}")
         if damping < 0:
@@ -74,17 +80,17 @@ class LevenbergMarquardt(ParameterOptimizer):
         if not 1 <= start <= RADIUS_CAP:
             raise ValueError(f"trust-region start must be in [1, {RADIUS_CAP:g}] learning rates, got {start}")
         self.lr0, self.damping, self.grow = lr, damping, grow
+        self.curvature = curvature
         self.radius = start * lr
         self.previous = np.zeros(size)
         self.capped = False
         self.reversals = 0.0
         self.noisy = False
 
-    def step(self, p, gradient, lower, upper, *, lr, hessian=None):
-        if hessian is None:
-            raise ValueError("levenberg-marquardt needs the curvature H of the iteration")
+    def step(self, p, gradient, lower, upper, *, lr, hessian=None, jacobians=None):
         if not lr > 0:
             raise ValueError(f"learning rate must be > 0, got {lr}")
+        hessian = self.hessian(p, lr, hessian, jacobians)
         delta = damped_step(gradient, hessian, self.damping, free_scalars(p, gradient, lower, upper))
         norms = float(np.linalg.norm(delta) * np.linalg.norm(self.previous))
         cosine = float(delta @ self.previous) / norms if norms > 0 else 0.0
@@ -114,8 +120,11 @@ class LevenbergMarquardt(ParameterOptimizer):
         return {"trust_radius": self.radius, "reversals": self.reversals}
 
     def state_dict(self) -> dict:
-        return {"radius": self.radius, "previous": self.previous.tolist(), "capped": self.capped,
-                "reversals": self.reversals, "noisy": self.noisy}
+        state = {"radius": self.radius, "previous": self.previous.tolist(), "capped": self.capped,
+                 "reversals": self.reversals, "noisy": self.noisy}
+        if self.curvature is not None:
+            state["curvature"] = self.curvature.state_dict()
+        return state
 
     def load_state_dict(self, state: dict) -> None:
         self.radius = float(state["radius"])
@@ -123,3 +132,5 @@ class LevenbergMarquardt(ParameterOptimizer):
         self.capped = bool(state["capped"])
         self.reversals = float(state["reversals"])
         self.noisy = bool(state["noisy"])
+        if self.curvature is not None and "curvature" in state:
+            self.curvature.load_state_dict(state["curvature"])

@@ -1,6 +1,8 @@
-// The parameters of a job: each parameter key's scalars over the iterations, with the targets of a
-// synthetic job as dashed lines, and a table of init, current and target values and dz/dp; then
-// the textures' summaries (./job-textures.js), whose texels are not listed scalars.
+// The parameters of a job: each parameter key's scalars over the iterations (the answer: the
+// estimate, with a band of ± 2 standard errors; the raw iterates faint), with the targets of a
+// synthetic job as dashed lines, and a table of init, estimate ± standard error, the last iterate,
+// target values and dz/dp, under why the run stopped; then the textures' summaries
+// (./job-textures.js), whose texels are not listed scalars.
 
 import { PALETTE, RGB, legend, lineChart } from "../charts.js";
 import { fmtNum, h } from "../dom.js";
@@ -14,13 +16,22 @@ function groups(plan) {
     .map(([, i]) => i) })).filter((group) => group.scalars.length > 0);   // textures have no listed scalars
 }
 
-/** The newest parameter values: after the last step, or the initial ones. */
+/** The answer now: the last record's estimate (its last step's parameters before the run had
+ * one), or the initial values. */
 export function currentValues(plan, records) {
   const last = records[records.length - 1];
-  return last ? last.updated_parameters : plan?.init;
+  return last ? (last.estimate || last.updated_parameters) : plan?.init;
+}
+
+/** Why the run stopped (the plan's last `stop` event), or null while it runs. */
+export function stopReason(plan) {
+  const events = plan?.events || [];
+  const last = events[events.length - 1];
+  return last && last.what === "stop" ? last.reason : null;
 }
 
 export function parametersPanel() {
+  const stopped = h("p.muted", { dataset: { testid: "stop-reason" } });
   const paramCharts = h("div.param-charts", { dataset: { testid: "parameter-charts" } });
   const paramTable = h("div.table-scroll");
   const textures = texturesPanel();
@@ -38,7 +49,13 @@ export function parametersPanel() {
       paramTable.replaceChildren();
       return;
     }
+    const reason = stopReason(plan);
+    stopped.textContent = reason ? `Stopped: ${reason}.` : "";
     const labels = plan.scalars, targets = plan.target_values;
+    const estimated = records.filter((r) => r.estimate);
+    const estimate = (i) => estimated.map((r) => [r.iteration, r.estimate[i]]);
+    const band = (i) => estimated.filter((r) => r.standard_error)
+      .map((r) => [r.iteration, r.estimate[i] - 2 * r.standard_error[i], r.estimate[i] + 2 * r.standard_error[i]]);
     const trajectory = (i) => {
       const points = records.map((r) => [r.iteration, r.parameters[i]]);
       const last = records[records.length - 1];
@@ -51,23 +68,32 @@ export function parametersPanel() {
       const chart = h("div.chart.chart-small", { dataset: { key } });
       const items = scalars.map((i, n) => ({ label: labels[i].slice(key.length) || key, color: color(n) }));
       if (targets) items.push({ label: "target", color: "#64748b", dashed: true });
+      if (estimated.length) items.push({ label: "iterates", color: "#94a3b8" });
+      const answers = estimated.length ? scalars.map((i, n) => ({ label: `${labels[i]} estimate`, color: color(n),
+        points: estimate(i) })) : [];
       const options = { height: 170,
-        series: scalars.map((i, n) => ({ label: labels[i], color: color(n), points: trajectory(i) })),
+        series: [...answers, ...scalars.map((i, n) => ({ label: labels[i], color: color(n), points: trajectory(i),
+          faint: estimated.length > 0 }))],
+        bands: scalars.map((i, n) => ({ color: color(n), points: band(i) })),
         guides: targets ? scalars.map((i, n) => ({ y: targets[i], color: color(n) })) : [] };
       return { chart, options, element: h("div.param-chart", h("div.param-key.mono", key), chart, legend(items)) };
     });
     paramCharts.replaceChildren(...charts.map((c) => c.element));
     for (const { chart, options } of charts) lineChart(chart, options);     // in the page: they measure their width
     const values = currentValues(plan, records);
-    const gradient = records.length ? records[records.length - 1].dz_dp : null;
+    const last = records.length ? records[records.length - 1] : null;
+    const errors = last?.standard_error;
     paramTable.replaceChildren(h("table.table.table-compact.param-table", { dataset: { testid: "parameter-table" } },
-      h("thead", h("tr", ["scalar", "init", "current", "target", "|Δ|", "dz/dp"].map((c) => h("th", c)))),
+      h("thead", h("tr", ["scalar", "init", "estimate", "± SE", "last iterate", "target", "|Δ|", "dz/dp"]
+        .map((c) => h("th", c)))),
       h("tbody", labels.map((label, i) => h("tr",
         h("td.mono", label), h("td.num", fmtNum(plan.init?.[i])), h("td.num", fmtNum(values?.[i])),
+        h("td.num", errors ? fmtNum(errors[i], 2) : "—"),
+        h("td.num", last ? fmtNum(last.updated_parameters[i]) : "—"),
         h("td.num", targets ? fmtNum(targets[i]) : "—"),
         h("td.num", targets && values ? fmtNum(Math.abs(values[i] - targets[i]), 3) : "—"),
-        h("td.num", gradient ? fmtNum(gradient[i], 3) : "—"))))));
+        h("td.num", last ? fmtNum(last.dz_dp[i], 3) : "—"))))));
   }
 
-  return { element: h("div", paramCharts, paramTable, textures.element), update };
+  return { element: h("div", stopped, paramCharts, paramTable, textures.element), update };
 }

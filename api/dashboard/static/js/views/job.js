@@ -281,7 +281,7 @@ export function jobView(root, jobId) {
     const values = currentValues(job.plan, records);
     stats.error.value.textContent = targets?.length && values     // none listed: a pure texture job
       ? fmtNum(Math.max(...targets.map((t, i) => Math.abs(values[i] - t))), 3) : "—";
-    stats.error.sub.textContent = targets ? "synthetic target" : "no known target";
+    stats.error.sub.textContent = targets ? "the estimate against the synthetic target" : "no known target";
     tick(finished, records);
   }
 

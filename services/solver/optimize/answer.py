@@ -1,0 +1,291 @@
+"""The answer a run returns: the best estimate of the parameters from the iterations of its
+current window, with a standard error per scalar, not the last noisy iterate.
+
+Each iteration ``k`` evaluates an unbiased, independently sampled gradient ``g_k`` ``(P,)`` of the
+loss summed over every view at the parameters ``p_k`` (Eq. 10; fresh seeds, views drawn without
+replacement). Near the answer ``p*`` the loss is quadratic with the Gauss-Newton curvature ``H``
+``(P, P)`` (:mod:`.optimizers.curvature`), so
+
+    g_k = H (p_k - p*) + ξ_k,        E[ξ_k | p_k] = 0,        Cov ξ_k = S / w_k
+
+with ``w_k`` the iteration's samples (views x samples per pixel of its batch: the noise falls as
+the batch grows). Every iteration is then a noisy Newton estimate ``p_k - H⁻¹ g_k`` of ``p*``,
+whatever step the optimizer took, and :class:`NewtonAnswer` returns their weighted mean over a
+window ``W`` of iterations:
+
+    p̂ = Σ_W w_k (p_k - H⁻¹ g_k) / Σ_W w_k                                     (the estimate)
+    Cov p̂ = H⁻¹ (Σ_W w_k² r_k r_kᵀ) H⁻¹ / (Σ_W w_k)² · |W| / (|W| - P)           (its covariance)
+    r_k = g_k - H (p_k - p̂)                                                    (gradient residuals)
+
+It is unbiased to first order with the covariance of the averaged noise (Polyak & Juditsky 1992's
+averaged iterate, with the Newton correction removing what the optimizer's own steps leave: a
+window may start before the steps settle). ``H`` is the mean curvature of the last
+:data:`CURVATURE_MEMORY` iterations; ``|W| / (|W| - P)`` corrects the residuals for the ``P``
+values ``p̂`` was fitted with. Why the curvature and the gradient noise, and not the spread of the
+iterates: the iterates of a trust-region method are strongly correlated (their spread over a
+window says little about the error of their mean), while the gradients' noise is independent
+from one iteration to the next, and the curvature that turns it into a parameter error is
+measured anyway by the second-order steps.
+
+A run without a curvature (Adam: textures, the ``l1`` loss, many scalars) has no Newton correction:
+:class:`MeanAnswer` returns the window's weighted mean of the iterates, and per scalar the
+batch-means error of that mean, in memory bounded whatever ``P`` (a million texels).
+
+The window. The model is local: far from the answer ``H`` changes and the Newton estimates of
+early iterations are off. The window is the longest suffix of the run whose two halves give
+estimates that agree within the errors the recent half's noise gives them (``χ²`` of their
+difference below its :data:`AGREEMENT` quantile, :func:`consistent`), tried at lengths shrinking
+by a quarter from the whole run down to :data:`MIN_WINDOW` iterations. So it restarts when the
+parameters move. (With each half's own residuals, iterations the model does not fit widen their
+own error bars and pass: on the bright closed room the whole run stayed in the window, and the
+errors were twice the standard errors at every budget.)
+
+What the standard error covers: the run's own Monte Carlo noise, which averaging lowers without
+end, and (:class:`NewtonAnswer`) the floor that the targets' noise and the model's misfit leave,
+which no number of iterations lowers (:mod:`.floor`): ``SE = sqrt(SE_run² + SE_floor²)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from statistics import NormalDist
+
+import numpy as np
+
+from services.solver.optimize.floor import Floor
+
+#: The fewest iterations an estimate averages (below: the last iterate, no standard error).
+MIN_WINDOW = 8
+#: Iterations whose curvatures are averaged into the estimate's ``H``.
+CURVATURE_MEMORY = 32
+#: The longest window of a :class:`NewtonAnswer` (its memory: this many ``(P,)`` iterates and gradients).
+MAX_WINDOW = 8192
+#: Batches of a :class:`MeanAnswer`: between this and twice this many are kept.
+BATCHES = 16
+#: The χ² quantile two halves of a window must agree within.
+AGREEMENT = 0.99
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The run's answer now: ``values`` and ``standard_error`` ``(P,)`` (None while too few
+    iterations were seen), the window ``[start, end]`` of iterations it averages, and how it was
+    formed: ``newton`` (curvature-corrected), ``mean`` (iterates averaged) or ``last`` (the last
+    iterate)."""
+
+    values: np.ndarray
+    standard_error: np.ndarray | None
+    start: int
+    end: int
+    kind: str
+    run_error: np.ndarray | None = None     # the part of the standard error the run's own noise makes
+    floor_error: np.ndarray | None = None   # the part the targets' noise and the misfit make (:mod:`.floor`)
+
+    @property
+    def iterations(self) -> int:
+        return self.end - self.start + 1
+
+
+def chi2_quantile(dof: int, q: float = AGREEMENT) -> float:
+    """The ``q`` quantile of ``χ²`` with ``dof`` degrees of freedom (Wilson-Hilferty; within 1%
+    for dof >= 1 at q = 0.99)."""
+    z = NormalDist().inv_cdf(q)
+    return dof * (1 - 2 / (9 * dof) + z * np.sqrt(2 / (9 * dof))) ** 3
+
+
+def consistent(first: tuple[np.ndarray, np.ndarray], second: tuple[np.ndarray, np.ndarray]) -> bool:
+    """Whether two independent estimates ``(values (P,), Cov)`` agree within their errors: ``χ²``
+    of their difference below the :data:`AGREEMENT` quantile. ``Cov`` is ``(P, P)``, or ``(P,)``
+    for a diagonal one."""
+    difference = first[0] - second[0]
+    covariance = first[1] + second[1]
+    if covariance.ndim == 1:
+        seen = covariance > 0
+        chi2 = float(np.sum(difference[seen] ** 2 / covariance[seen]))
+        return chi2 <= chi2_quantile(max(int(seen.sum()), 1)) and not np.any(difference[~seen])
+    scale = np.sqrt(np.clip(np.diag(covariance), 1e-300, None))
+    try:
+        chi2 = float(difference / scale @ np.linalg.solve(covariance / np.outer(scale, scale), difference / scale))
+    except np.linalg.LinAlgError:
+        return False
+    return chi2 <= chi2_quantile(difference.size)
+
+
+def newton_estimate(p: np.ndarray, g: np.ndarray, w: np.ndarray, h: np.ndarray, h_inv: np.ndarray,
+                    noise: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(p̂ (P,), Cov p̂ (P, P), S (P, P))`` of the module docstring for iterates ``p`` and
+    gradients ``g`` ``(K, P)`` with weights ``w`` ``(K,)``; ``S`` is the gradient noise of unit
+    weight, measured from the residuals unless given (``noise``)."""
+    k, n = p.shape
+    total = float(w.sum())
+    estimate = (w[:, None] * (p - g @ h_inv.T)).sum(0) / total
+    if noise is None:
+        residuals = g - (p - estimate) @ h.T
+        noise = (w[:, None] * residuals).T @ residuals / (k - n) if k > n else np.full((n, n), np.inf)
+    return estimate, h_inv @ noise @ h_inv.T / total, noise
+
+
+class NewtonAnswer:
+    """The answer of a run with a curvature (module docstring). ``lower``, ``upper`` ``(P,)``: the
+    estimate is projected onto the bounds, as the iterates are."""
+
+    kind = "newton"
+
+    def __init__(self, lower: np.ndarray, upper: np.ndarray, views: int = 1):
+        self.lower, self.upper = np.asarray(lower, np.float64), np.asarray(upper, np.float64)
+        self.seen = 0
+        self.floor = Floor(views)
+        self.points: list[np.ndarray] = []
+        self.gradients: list[np.ndarray] = []
+        self.weights: list[float] = []
+        self.curvatures: list[np.ndarray] = []
+
+    def observe(self, p: np.ndarray, gradient: np.ndarray, weight: float, hessian: np.ndarray | None) -> None:
+        """The next iteration: its parameters ``p`` and gradient ``(P,)``, its samples ``weight``
+        and the curvature its step used."""
+        if not weight > 0:
+            raise ValueError(f"an iteration's weight must be > 0, got {weight}")
+        self.seen += 1
+        self.points = [*self.points[-(MAX_WINDOW - 1):], np.array(p, np.float64)]
+        self.gradients = [*self.gradients[-(MAX_WINDOW - 1):], np.array(gradient, np.float64)]
+        self.weights = [*self.weights[-(MAX_WINDOW - 1):], float(weight)]
+        if hessian is not None:
+            self.curvatures = [*self.curvatures[-(CURVATURE_MEMORY - 1):], np.array(hessian, np.float64)]
+
+    def estimate(self) -> Estimate:
+        """The best estimate from the iterations observed so far."""
+        k = len(self.points)
+        if k == 0:
+            raise ValueError("no iteration observed")
+        last = self.seen - 1
+        if k < MIN_WINDOW or not self.curvatures:
+            return Estimate(self.points[-1], None, last, last, "last")
+        p, g, w = np.array(self.points), np.array(self.gradients), np.array(self.weights)
+        h = np.mean(self.curvatures, axis=0)
+        h = (h + h.T) / 2
+        h_inv = np.linalg.pinv(h)
+
+        def fit(a: int, b: int, noise: np.ndarray | None = None):
+            return newton_estimate(p[a:b], g[a:b], w[a:b], h, h_inv, noise)
+
+        testable = 2 * max(MIN_WINDOW, 2 * p.shape[1] + 2)   # halves long enough to measure the noise in
+        length = k
+        while length >= MIN_WINDOW:
+            start, half = k - length, k - length + length // 2
+            # the older half judged with the recent half's noise: iterations the quadratic model does
+            # not fit would otherwise widen their own error bars and pass
+            recent = fit(half, k) if length >= testable else None
+            if recent is None or consistent(fit(start, half, recent[2])[:2], recent[:2]):
+                values, covariance, _ = fit(start, k)
+                run = np.clip(np.diag(covariance), 0.0, None)
+                floor = self.floor.covariance(last - length + 1, h_inv)
+                total = run if floor is None else run + np.clip(np.diag(floor), 0.0, None)
+                return Estimate(np.clip(values, self.lower, self.upper), np.sqrt(total), last - length + 1, last,
+                                self.kind, np.sqrt(run), None if floor is None else np.sqrt(np.diag(floor)))
+            length = length * 3 // 4
+        return Estimate(self.points[-1], None, last, last, "last")
+
+    def residual(self, k: int, view: int, residual: np.ndarray, jacobian: np.ndarray | None) -> None:
+        """Iteration ``k``'s block residual of ``view`` and its Jacobian, for the floor (:mod:`.floor`)."""
+        self.floor.observe(k, view, residual, jacobian)
+
+    def state_dict(self) -> dict:
+        return {"seen": self.seen, "points": np.array(self.points), "gradients": np.array(self.gradients),
+                "weights": np.array(self.weights), "curvatures": np.array(self.curvatures),
+                "floor": self.floor.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.floor.load_state_dict(state["floor"])
+        self.seen = int(state["seen"])
+        self.points = [np.asarray(v, np.float64) for v in state["points"]]
+        self.gradients = [np.asarray(v, np.float64) for v in state["gradients"]]
+        self.weights = [float(v) for v in state["weights"]]
+        self.curvatures = [np.asarray(v, np.float64) for v in state["curvatures"]]
+
+
+class MeanAnswer:
+    """The answer of a run without a curvature (module docstring): iterates summed into batches
+    of consecutive iterations, two neighbours merged whenever more than ``2 x`` :data:`BATCHES`
+    are kept, so memory stays ``O(BATCHES x P)``; windows start at a batch."""
+
+    kind = "mean"
+
+    def __init__(self, lower: np.ndarray, upper: np.ndarray):
+        self.lower, self.upper = np.asarray(lower, np.float64), np.asarray(upper, np.float64)
+        self.seen = 0
+        self.size = 1                                  # iterations per batch now
+        self.sums: list[np.ndarray] = []               # Σ w_k p_k per batch
+        self.totals: list[float] = []                  # Σ w_k per batch
+        self.counts: list[int] = []                    # iterations per batch
+        self.last: np.ndarray | None = None
+
+    def observe(self, p: np.ndarray, gradient: np.ndarray, weight: float, hessian: np.ndarray | None) -> None:
+        if not weight > 0:
+            raise ValueError(f"an iteration's weight must be > 0, got {weight}")
+        self.seen += 1
+        self.last = np.array(p, np.float64)
+        if not self.counts or self.counts[-1] >= self.size:
+            self.sums.append(np.zeros_like(self.last))
+            self.totals.append(0.0)
+            self.counts.append(0)
+        self.sums[-1] += weight * self.last
+        self.totals[-1] += weight
+        self.counts[-1] += 1
+        if len(self.counts) >= 2 * BATCHES and self.counts[-1] >= self.size:   # full: merge neighbours
+            self.size *= 2
+            self.sums = [self.sums[i] + self.sums[i + 1] for i in range(0, len(self.sums), 2)]
+            self.totals = [self.totals[i] + self.totals[i + 1] for i in range(0, len(self.totals), 2)]
+            self.counts = [self.counts[i] + self.counts[i + 1] for i in range(0, len(self.counts), 2)]
+
+    def residual(self, k: int, view: int, residual: np.ndarray, jacobian: np.ndarray | None) -> None:
+        """No floor without a curvature to turn it into parameter errors."""
+
+    def _fit(self, a: int, b: int, noise: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The weighted mean of batches ``a..b-1``, its per-scalar variance and the variance of a
+        batch mean of unit weight (measured from the batches' spread unless given, ``noise``)."""
+        total = float(sum(self.totals[a:b]))
+        estimate = sum(self.sums[a:b]) / total
+        if noise is None:
+            n = b - a
+            noise = np.asarray(sum(t * (s / t - estimate) ** 2 for s, t in zip(self.sums[a:b], self.totals[a:b])))
+            noise = noise / max(n - 1, 1)
+        return estimate, noise / total, noise
+
+    def estimate(self) -> Estimate:
+        if self.last is None:
+            raise ValueError("no iteration observed")
+        last = self.seen - 1
+        batches = len(self.counts)
+        if self.seen < MIN_WINDOW or batches < 4:
+            return Estimate(self.last, None, last, last, "last")
+        length = batches
+        while length >= 4:
+            start, half = batches - length, batches - length + length // 2
+            recent = self._fit(half, batches)
+            if length < 8 or consistent(self._fit(start, half, recent[2])[:2], recent[:2]):
+                values, variance, _ = self._fit(start, batches)
+                first = self.seen - sum(self.counts[start:])
+                return Estimate(np.clip(values, self.lower, self.upper), np.sqrt(np.clip(variance, 0.0, None)),
+                                first, last, self.kind)
+            length = length * 3 // 4
+        return Estimate(self.last, None, last, last, "last")
+
+    def state_dict(self) -> dict:
+        return {"seen": self.seen, "size": self.size, "sums": np.array(self.sums), "totals": list(self.totals),
+                "counts": list(self.counts), "last": self.last}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.seen, self.size = int(state["seen"]), int(state["size"])
+        self.sums = [np.asarray(v, np.float64) for v in state["sums"]]
+        self.totals = [float(v) for v in state["totals"]]
+        self.counts = [int(v) for v in state["counts"]]
+        self.last = None if state["last"] is None else np.asarray(state["last"], np.float64)
+
+
+Answer = NewtonAnswer | MeanAnswer
+
+
+def answer_for(second_order: bool, lower: np.ndarray, upper: np.ndarray, views: int = 1) -> Answer:
+    """The answer of a run whose steps have a curvature (``second_order``), or not, over ``views``
+    target views."""
+    return NewtonAnswer(lower, upper, views) if second_order else MeanAnswer(lower, upper)

@@ -1,0 +1,319 @@
+"""A job resolved into its recipe, once: :func:`resolve` turns a validated job into a frozen
+:class:`~services.solver.optimize.recipe.Recipe`, every choice with the reason a user reads in
+``plan.json``. Nothing downstream decides again: :mod:`.build` makes the run's objects from the
+recipe, and what the run itself decides on the way (a larger batch, a stop) is appended to the
+plan as an event.
+
+Pure: the scene enters only through :class:`Measures`, three measurements taken when (and only
+when) a rule needs them: the effect probe (the fields' effects), the scene's closure
+(Levenberg-Marquardt's trust region) and whether each scalar is seen directly (``prb``'s first
+samples per pixel). The rules and what they rest on (``bench/results/``):
+
+* **prb with Russian roulette** gives an unbiased gradient at the price of one render; with 1
+  spp and one view per iteration it is the fastest hand-written Mitsuba loop in every scene
+  measured, so it is the gradient of ``auto``.
+* **Levenberg-Marquardt** reaches the answer in a few steps where Adam is limited to the
+  learning rate per step, when its Jacobian is cheap: a forward-mode render per group of
+  scalars that change distinct RGB channels. ``auto`` takes it when the loss is ``l2`` and
+  at most :data:`MAX_JACOBIAN_RENDERS` renders per view measure the Jacobian; otherwise Adam.
+* **Levenberg-Marquardt's trust region starts at 4 learning rates and grows by 2 on agreeing
+  steps where at least 1 - :data:`CLOSED` of the light reflected leaves the scene** (the
+  closure, :func:`services.solver.scene.closure.closure`); otherwise it starts at one and grows
+  by 3/2: an image's response to an albedo curves like ``a / (1 - a c)``, and Gauss-Newton's
+  linear model holds over long steps only where ``c`` is small (``python -m bench.trust_growth``).
+* **One view per iteration at 1 spp**, the batch doubled by the run itself when the steps keep
+  reversing (noise-dominated): views while there are more, then samples per pixel; kept as it is
+  under Adam, whose moments average the noise.
+* **8 samples per pixel from the start where no optimized scalar is seen directly**
+  (``python -m bench.first_spp``): the gradient of a scalar seen only through interreflection is
+  the noisy tail of longer paths.
+* **A texture** (``bench/results/textures*.md``): Adam (a Gauss-Newton step would need a P x P
+  curvature), every view at :data:`TEXTURE_SPP` spp per iteration.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Protocol
+
+import numpy as np
+
+from schemas.job import JobSpec
+from schemas.methods import AUTO, Method
+from services.solver.estimators.layout import DerivativeLayout
+from services.solver.estimators.methods import method_class
+from services.solver.estimators.methods.prb import channel_groups
+from services.solver.estimators.render import PathDepth
+from services.solver.optimize.recipe import BatchRule, Decision, Recipe, Steps
+from services.solver.optimize.stopping import StopRule
+from services.solver.scene.facts import SceneFacts
+from services.solver.scene.footprint import pixels_per_texel
+from services.solver.scene.planner import EffectPlan, plan_effects
+
+#: A texture needs this many pixels per texel (median over its footprint) to be optimized at its own resolution.
+PIXELS_PER_TEXEL = 4
+#: The largest block of texels a texture's resolution is matched with.
+MAX_BLOCK = 16
+#: A truncated path depth that misses more than this share of the light is a warning in the plan.
+MISSING_ENERGY = 1e-3
+#: ``auto`` takes Levenberg-Marquardt when its Jacobian costs at most this many forward renders per view.
+MAX_JACOBIAN_RENDERS = 4
+#: A growing batch stops at this many times its first size (views x samples per pixel).
+MAX_GROWTH = 16
+#: A scene whose closure (the share of reflected light that hits another surface) is at least this
+#: is closed: its images curve strongly in the albedos, and the trust region grows slowly.
+CLOSED = 0.95
+#: Levenberg-Marquardt's trust-radius growth in an open scene and in a closed one.
+OPEN_GROWTH, CLOSED_GROWTH = 2.0, 1.5
+#: Its first radius, in learning rates, in an open scene and in a closed one.
+OPEN_START, CLOSED_START = 4.0, 1.0
+#: Samples per pixel of a texture job whose job leaves them unset.
+TEXTURE_SPP = 16
+#: Samples per pixel of ``prb``'s first batch when no optimized scalar is seen directly.
+INDIRECT_SPP = 8
+
+
+class Measures(Protocol):
+    """The measurements of the scene :func:`resolve` may ask for, each at the initial values."""
+
+    def facts(self) -> SceneFacts:
+        """The effect probe (:func:`services.solver.scene.facts.probe_scene`)."""
+
+    def closure(self) -> float | None:
+        """The share of reflected light that hits another surface; None without a reflecting surface."""
+
+    def direct(self) -> list[bool]:
+        """Per scalar: whether it changes the light of the camera hits directly."""
+
+    def missing_energy(self, depth: PathDepth) -> float:
+        """The share of the image's light a truncated path ``depth`` misses."""
+
+    def footprint(self, key: str, shape: tuple[int, ...]) -> np.ndarray:
+        """``(H, W)`` pixels of the target views that see each texel of the texture ``key`` directly."""
+
+
+class Parameters(Protocol):
+    """What :func:`resolve` reads of the optimized parameters (a ``ParameterSet``)."""
+
+    @property
+    def n(self) -> int: ...
+
+    @property
+    def has_textures(self) -> bool: ...
+
+    @property
+    def sizes(self) -> list[int]: ...
+
+    @property
+    def textures(self) -> list[tuple[str, tuple[int, ...]]]:
+        """``(key, (H, W, C))`` of each texture parameter."""
+
+
+def fields_method(spec: JobSpec) -> str | None:
+    """The method whose fields the run trains, which the effects are chosen for: the job's own,
+    or ``ndrf-lhs`` when its ``dL_theta`` is the Jacobian of another method (the hybrid); None
+    when no field is trained (``prb``, ``direct``) or the many-parameter head simulates every
+    effect (no per-scalar choice of P scalars)."""
+    method = str(Method.PRB) if spec.method == AUTO else str(spec.method)
+    if spec.training.head is not None:
+        return None
+    if spec.jacobian == "differential-field":
+        return str(Method.NDRF_LHS)
+    return method if method_class(method).uses else None
+
+
+def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measures) -> Recipe:
+    """Everything the run of ``spec`` will do (module docstring): ``parameters`` are the job's
+    optimized scalars, ``sensors`` its target views; ``measures`` is asked only for what a rule
+    needs."""
+    decisions: list[Decision] = []
+
+    def decide(what: str, value, reason: str) -> None:
+        decisions.append(Decision(what, value, reason))
+
+    method = str(Method.PRB) if spec.method == AUTO else str(spec.method)
+    if spec.method == AUTO:
+        decide("method", method, "prb: an unbiased gradient for one adjoint render per view, whatever the number of "
+                                 "scalars; no field to train before the first step")
+    depth = PathDepth(spec.render.max_depth, spec.render.rr_depth)
+    decide("depth", depth.describe(),
+           "the job's render.max_depth / rr_depth" if spec.render.max_depth or spec.render.rr_depth != 5
+           else "Mitsuba's default: every bounce, so photographs and candidates agree (no depth bias)")
+    warnings = []
+    if not depth.unbiased:
+        missing = measures.missing_energy(depth)
+        if missing > MISSING_ENERGY:
+            warnings.append(f"render.max_depth {depth.max_depth} misses {missing:.1%} of the image's light at the "
+                            f"initial values (more where materials are brighter): the recovered parameters are "
+                            f"biased; leave render.max_depth unset for unbounded paths with Russian roulette")
+    planned_for = fields_method(spec)
+    effects = None
+    if planned_for is not None:
+        effects = plan_effects(measures.facts(), planned_for, method_class(planned_for).uses, spec.effects,
+                               spec.training.delta_depth)
+        warnings += effects.warnings
+    layout = _layout(parameters, effects, spec.effects.merge_channels)
+    optimizer = _optimizer(spec, method, parameters, layout, decide)
+    growth, start = CLOSED_GROWTH, CLOSED_START
+    if optimizer == "levenberg-marquardt":
+        growth, start = _trust_region(measures, decide)
+    batch = _batch(spec, method, optimizer, parameters, effects, layout, sensors, measures, decide)
+    steps = Steps(optimizer=optimizer, learning_rate=spec.learning_rate,
+                  final_learning_rate_ratio=spec.final_learning_rate_ratio, iterations=spec.iterations,
+                  betas=spec.adam_betas, damping=spec.damping, curvature=spec.hessian,
+                  curvature_every=spec.jacobian_every, trust_growth=growth, trust_start=start)
+    stop = _stop(spec, optimizer, decide)
+    blocks = _texture_blocks(spec, parameters, measures, decide) if parameters.has_textures else ()
+    return Recipe(method=method, jacobian=spec.jacobian, fields_for=planned_for, depth=depth, effects=effects,
+                  layout=layout, steps=steps, batch=batch, stop=stop, decisions=tuple(decisions),
+                  warnings=tuple(warnings), texture_blocks=blocks)
+
+
+def _texture_blocks(spec: JobSpec, parameters: Parameters, measures: Measures, decide) -> tuple[tuple[str, int], ...]:
+    """Each texture's block side: 1 (its own resolution), or, with ``textures.resolution`` "auto"
+    and fewer than :data:`PIXELS_PER_TEXEL` pixels per texel in its footprint, the smallest power
+    of two whose blocks that many pixels each see (at most :data:`MAX_BLOCK`)."""
+    out = []
+    for key, shape in parameters.textures:
+        counts = measures.footprint(key, shape)
+        per_texel = pixels_per_texel(counts)
+        seen = (f"its footprint: {int(counts.sum())} pixels of the target views see its {shape[0]}x{shape[1]} "
+                f"texels directly ({counts.sum() / counts.size:.2g} per texel; {per_texel:.2g} per texel seen, median)")
+        if spec.textures.resolution == "full" or per_texel >= PIXELS_PER_TEXEL or not counts.any():
+            why = ("the job's textures.resolution 'full'" if spec.textures.resolution == "full" else
+                   "no pixel sees it directly (a texture lit or seen through interreflection): nothing to match"
+                   if not counts.any() else f"enough pixels for every texel (at least {PIXELS_PER_TEXEL})")
+            decide(f"resolution {key}", f"{shape[0]}x{shape[1]}", f"{seen}: {why}")
+            out.append((key, 1))
+            continue
+        block = 2
+        while block < MAX_BLOCK and pixels_per_texel(counts, block) < PIXELS_PER_TEXEL:
+            block *= 2
+        decide(f"resolution {key}", f"{-(-shape[0] // block)}x{-(-shape[1] // block)}",
+               f"{seen}: the images cannot pin down its texels (fewer than {PIXELS_PER_TEXEL} pixels per texel), so "
+               f"blocks of {block}x{block} texels move together, each seen by {pixels_per_texel(counts, block):.2g} "
+               f"pixels (median; textures.resolution 'full' keeps every texel free; bench.texture_footprint)")
+        out.append((key, block))
+    return tuple(out)
+
+
+def _stop(spec: JobSpec, optimizer: str, decide) -> StopRule:
+    """When the run ends before ``iterations`` (:mod:`.stopping`)."""
+    asked = spec.stop
+    auto = asked.auto and optimizer != "adam"
+    if asked.auto and not auto:
+        decide("stop", "iterations", f"the answer's floor needs the curvature of second-order steps, and {optimizer} "
+                                     f"has none: the run ends at iterations ({spec.iterations})")
+    elif auto:
+        decide("stop", "auto", f"when more iterations would not improve the answer (the run's noise under half of "
+                               f"the floor the targets' noise leaves), at most {spec.iterations} iterations")
+    return StopRule(spec.iterations, asked.standard_error, asked.relative, auto)
+
+
+def _layout(parameters: Parameters, effects: EffectPlan | None, merge_channels: bool) -> DerivativeLayout:
+    """The derivatives the run carries: the effects' active scalars and channels, else every scalar
+    (each RGB component its own channel, or all three with ``merge_channels`` off)."""
+    if effects is not None:
+        active = effects.active_channels()
+        return DerivativeLayout(tuple(i for i, _ in active), tuple(channels for _, channels in active))
+    if not merge_channels:
+        return DerivativeLayout.full(parameters.n)
+    return DerivativeLayout.by_component(list(parameters.sizes))
+
+
+def jacobian_renders(layout: DerivativeLayout) -> int:
+    """Forward-mode renders per view that measure ``prb``'s Jacobian (one per channel group)."""
+    return len(channel_groups(list(layout.channels)))
+
+
+def _optimizer(spec: JobSpec, method: str, parameters: Parameters, layout: DerivativeLayout, decide) -> str:
+    if spec.optimizer != "auto":
+        return spec.optimizer
+    if spec.loss != "l2":
+        decide("optimizer", "adam", f"the {spec.loss} loss has no Gauss-Newton model")
+    elif layout.active == 0:
+        decide("optimizer", "adam", "no scalar changes the image: nothing to model")
+    elif spec.training.head is not None:
+        decide("optimizer", "adam", "training.head (the many-parameter head): a Gauss-Newton step would need P "
+                                    "Jacobian images per view (services.solver.optimize.carry)")
+    elif parameters.has_textures:
+        decide("optimizer", "adam", f"a texture's {parameters.n} scalars: a Gauss-Newton step would solve with a "
+                                    f"P x P curvature (services.solver.optimize.carry)")
+    else:
+        renders = jacobian_renders(layout) if method == Method.PRB and spec.jacobian == "method" else 0
+        if renders > MAX_JACOBIAN_RENDERS:
+            decide("optimizer", "adam", f"the Jacobian would cost {renders} forward renders per view (more than "
+                                        f"{MAX_JACOBIAN_RENDERS}): Adam on the adjoint gradient")
+            return "adam"
+        cost = (f"{renders} forward render(s) per view measure the Jacobian ({layout.active} scalars in {renders} "
+                f"channel group(s))" if renders else "the Jacobian is a field query")
+        decide("optimizer", "levenberg-marquardt", f"{cost}: Gauss-Newton steps in a trust region reach the answer "
+                                                   f"in fewer iterations than Adam's learning-rate-limited steps")
+        return "levenberg-marquardt"
+    return "adam"
+
+
+def _trust_region(measures: Measures, decide) -> tuple[float, float]:
+    """Levenberg-Marquardt's growth of the trust radius and its first radius, from the closure."""
+    closure = measures.closure()
+    if closure is None:
+        why = "no reflecting surface to measure the scene's closure on"
+        decide("trust_growth", CLOSED_GROWTH, f"{why}: the cautious growth of the trust region (3/2)")
+        decide("trust_start", CLOSED_START, f"{why}: the cautious first step, one learning rate (Adam's)")
+        return CLOSED_GROWTH, CLOSED_START
+    share = f"{closure:.0%} of the light a surface reflects hits another surface"
+    if closure < CLOSED:
+        decide("trust_growth", OPEN_GROWTH, f"{share}: the images are close to linear in the scalars, and the trust "
+                                            f"region doubles on steps that agree")
+        decide("trust_start", OPEN_START, f"the same linearity: the first step may be {OPEN_START:g} learning rates "
+                                          f"long")
+        return OPEN_GROWTH, OPEN_START
+    decide("trust_growth", CLOSED_GROWTH, f"{share} (a closed scene): the images curve strongly in the albedos, and "
+                                          f"the trust region grows by 3/2 on steps that agree")
+    decide("trust_start", CLOSED_START, "the same curvature: the first step is one learning rate long (Adam's)")
+    return CLOSED_GROWTH, CLOSED_START
+
+
+def _batch(spec: JobSpec, method: str, optimizer: str, parameters: Parameters, effects: EffectPlan | None,
+           layout: DerivativeLayout, sensors: int, measures: Measures, decide) -> BatchRule:
+    """The first batch of views and samples per pixel, and whether the run may grow it."""
+    render, auto_views = spec.render, spec.views_per_iteration == "auto"
+    unset = not {"spp", "gradient_spp"} & render.model_fields_set
+    views = 1 if auto_views else min(int(spec.views_per_iteration), sensors)
+    spp, gradient_spp, grows = render.spp, render.gradient_spp, False
+    if parameters.has_textures and auto_views:
+        views = sensors
+        decide("views", sensors, "a texture: every view per iteration (each texel is seen by few pixels; one view at "
+                                 "a time leaves Adam's steps noise-dominated, bench/results/textures*.md)")
+        if unset:
+            spp = gradient_spp = TEXTURE_SPP
+            decide("spp", TEXTURE_SPP, f"a texture: {TEXTURE_SPP} samples per pixel (render.spp and gradient_spp "
+                                       f"left unset)")
+        return BatchRule(views, spp, gradient_spp, grows=False, max_growth=MAX_GROWTH)
+    if auto_views:
+        grows = optimizer != "adam"
+        start = (f"one of the {sensors} views per iteration (the fastest hand-written loop's batch too)"
+                 if sensors > 1 else "the job's one view")
+        decide("views", views, start + ("; the batch doubles whenever the steps turn noise-dominated: views first, "
+                                        f"then samples per pixel (up to {MAX_GROWTH}x)" if grows
+                                        else "; Adam's moments average the noise"))
+    if method == Method.PRB and unset and not parameters.has_textures and _indirect_only(effects, layout, measures):
+        spp = gradient_spp = INDIRECT_SPP
+        decide("spp", INDIRECT_SPP, f"no optimized scalar is seen directly: its gradient comes from paths of two "
+                                    f"bounces or more, whose noise at 1 sample per pixel decides the steps' direction; "
+                                    f"{INDIRECT_SPP} samples per pixel from the first iteration (bench.first_spp)")
+    elif render.spp == 1 and render.gradient_spp == 1:
+        decide("spp", 1, "1 sample per pixel: the fastest to a given error in every scene measured; the optimizer "
+                         "averages the noise across iterations")
+    return BatchRule(views, spp, gradient_spp, grows=grows, max_growth=MAX_GROWTH)
+
+
+def _indirect_only(effects: EffectPlan | None, layout: DerivativeLayout, measures: Measures) -> bool:
+    """True when no active scalar changes the light of the camera hits directly (the hidden
+    object of the paper's Fig. 5): from the effects where the method chose them, else measured."""
+    if effects is not None:
+        active = [s for s in effects.scalars if s.active]
+        return bool(active) and all(s.first_bounce is not None and s.first_bounce > 0 for s in active)
+    reach: Sequence[bool] = measures.direct()
+    seen = [reach[i] for i in layout.scalars]
+    return bool(seen) and not any(seen)

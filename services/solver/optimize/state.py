@@ -1,0 +1,126 @@
+"""What a run carries from one iteration to the next (:class:`RunState`), how a checkpoint holds
+it, and what ``plan.json`` says of the run (:func:`describe`).
+
+A checkpoint (:mod:`.checkpoint`) holds the next iteration, the parameters, the optimizer's state
+(Adam's moments; Levenberg-Marquardt's trust radius and its curvature with each view's remembered
+Jacobians), the position in the stream of views, the batch in use, the answer's state, the
+run's events and the fields' trainer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from schemas.job import JobSpec
+from services.solver.estimators.losses import ImageLoss
+from services.solver.optimize import checkpoint
+from services.solver.optimize.answer import Answer, answer_for
+from services.solver.optimize.build import Built
+from services.solver.optimize.images import ImageSchedule
+from services.solver.optimize.recipe import BatchNow, Decision, Recipe
+from services.solver.optimize.setup import Prepared
+
+
+@dataclass
+class RunState:
+    """The run's state between iterations (module docstring). ``parameters`` ``(P,)`` are the
+    values the next iteration is evaluated at (assigned to the scene by :meth:`advance`)."""
+
+    next_iteration: int
+    parameters: np.ndarray
+    batch: BatchNow
+    answer: Answer
+    views_offset: int = 0
+    events: list[Decision] = field(default_factory=list)   # decisions taken on the way
+    images: ImageSchedule = field(default_factory=ImageSchedule)
+    losses: dict[int, ImageLoss] = field(default_factory=dict)   # each view's loss (its target on the device)
+
+    def loss_of(self, prepared: Prepared, view: int) -> ImageLoss:
+        """The loss of ``view`` against its target (made once: the target is kept on the device)."""
+        if view not in self.losses:
+            self.losses[view] = ImageLoss(prepared.spec.loss, prepared.targets[view],
+                                          prepared.problem.count_sanitized)
+        return self.losses[view]
+
+    def advance(self, prepared: Prepared, updated: np.ndarray, views_offset: int) -> None:
+        """Move to the next iteration at ``updated``: the one place the scene's parameters change."""
+        self.parameters = np.asarray(updated, np.float64)
+        self.views_offset = views_offset
+        self.next_iteration += 1
+        prepared.problem.parameters.assign(self.parameters)
+
+
+def initial_state(prepared: Prepared, recipe: Recipe) -> RunState:
+    """The state before the first iteration: the initial values, the recipe's first batch."""
+    answer = answer_for(recipe.steps.second_order, prepared.lower, prepared.upper, len(prepared.targets))
+    return RunState(0, prepared.init.copy(), BatchNow.first(recipe.batch), answer)
+
+
+def save(spec: JobSpec, state: RunState, built: Built, method: str) -> bytes:
+    """The checkpoint of ``state`` (module docstring)."""
+    trainer = built.trainer
+    return checkpoint.dumps(spec=spec, next_iteration=state.next_iteration, parameters=state.parameters,
+                            optimizer=built.optimizer.state_dict(), views_offset=state.views_offset,
+                            batch=(state.batch.views, state.batch.spp, state.batch.gradient_spp),
+                            events=[asdict(e) for e in state.events], answer=state.answer.state_dict(),
+                            trainer=None if trainer is None else trainer.state_dict(), method=method)
+
+
+def restore(spec: JobSpec, blob: bytes, state: RunState, built: Built) -> None:
+    """Continue from the checkpoint ``blob``: ``state`` and the built objects take its values.
+    A checkpoint of an older version keeps the curvature beside the optimizer's state."""
+    saved = checkpoint.loads(blob, spec)
+    state.next_iteration = saved["next_iteration"]
+    state.parameters = np.asarray(saved["parameters"], np.float64)
+    state.views_offset = int(saved["views_offset"])
+    state.batch = BatchNow(*(int(v) for v in saved["batch"]))
+    state.events = [Decision(**e) for e in saved.get("events") or []]
+    if saved.get("answer") is not None:
+        state.answer.load_state_dict(saved["answer"])
+    optimizer = dict(saved["optimizer"])
+    if built.optimizer.curvature is not None and "curvature" not in optimizer and saved.get("hessian") is not None:
+        optimizer["curvature"] = {"hessian": saved["hessian"],
+                                  "memory": saved.get("jacobians") or {}}
+    built.optimizer.load_state_dict(optimizer)
+    if built.trainer is not None and saved["trainer"] is not None:
+        built.trainer.load_state_dict(saved["trainer"])
+
+
+def describe(prepared: Prepared, recipe: Recipe, built: Built, state: RunState, *, seconds: dict,
+             warm_start: dict | None) -> dict:
+    """``plan.json``: what the run simulates and why (the recipe with its decisions), the scalars
+    with their bounds and targets, and the events of the run so far."""
+    problem, trainer, textures, spec = prepared.problem, built.trainer, prepared.textures, prepared.spec
+    width, height = problem.scene.resolution()
+    depths: dict[str, object] = {"render": recipe.depth.describe()}
+    if prepared.target_depth is not None:
+        depths["target"] = prepared.target_depth.describe()
+    if recipe.warnings:
+        depths["warnings"] = list(recipe.warnings)
+    return {
+        "method": recipe.method,
+        "recipe": recipe.to_json(),
+        "events": [asdict(e) for e in state.events],
+        "realised_by": type(built.method).__name__,
+        "fields": {"radiance": trainer is not None and trainer.radiance is not None,
+                   "differential": trainer is not None and (trainer.differential is not None
+                                                            or trainer.head is not None)},
+        "scalars": textures.labels,
+        "keys": problem.parameters.keys,
+        "init": textures.scalars(prepared.init),
+        "lower": textures.scalars(prepared.lower),
+        "upper": [u if np.isfinite(u) else None for u in textures.scalars(prepared.upper)],
+        "target_values": None if prepared.target_values is None else textures.scalars(prepared.target_values),
+        "textures": textures.plan(prepared.init, prepared.lower, prepared.upper, prepared.target_values),
+        "sensors": sorted(prepared.targets),
+        "resolution": [width, height],
+        "depths": depths,
+        "prepared_seconds": seconds,
+        "render": spec.render.model_dump(mode="json"),
+        "training": spec.training.model_dump(mode="json"),
+        "effects": recipe.effects.to_json() if recipe.effects is not None else None,
+        "iterations": spec.iterations,
+        "warm_start": warm_start,
+    }

@@ -1,0 +1,103 @@
+"""The answer a run returns (``services/solver/optimize/answer.py``): on a noisy quadratic whose
+answer is known, the Newton-corrected window average is calibrated (±2 SE covers the answer about
+95% of the time, and |error| / SE has the median of a Gaussian's, 0.67), beats the last iterate,
+and its window leaves out the iterations before the steps settled."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.solver.optimize.answer import MIN_WINDOW, MeanAnswer, NewtonAnswer, chi2_quantile, consistent
+
+#: A coupled 3-scalar valley (condition number ~ 50) and its answer.
+H = np.array([[2.0, 1.6, 0.2], [1.6, 2.0, 0.1], [0.2, 0.1, 0.5]])
+TRUTH = np.array([0.6, 0.3, 0.45])
+
+
+def _run(seed: int, iterations: int, noise: float = 0.2, *, curvature_noise: float = 0.05, lr: float = 0.05,
+         start=(0.1, 0.9, 0.9), cubic: float = 0.0) -> tuple[NewtonAnswer, np.ndarray]:
+    """A second-order optimizer on g = H (p - p*) + cubic (p - p*)³ + noise, steps capped at
+    ``lr`` (the trust radius of a noise-dominated Levenberg-Marquardt), with a noisy curvature per
+    iteration (``H``'s: the curvature at the answer)."""
+    rng = np.random.default_rng(seed)
+    answer = NewtonAnswer(np.zeros(3), np.ones(3))
+    p = np.array(start, float)
+    for _ in range(iterations):
+        g = H @ (p - TRUTH) + cubic * (p - TRUTH) ** 3 + noise * rng.standard_normal(3)
+        h = H + curvature_noise * (lambda a: (a + a.T) / 2)(rng.standard_normal((3, 3)))
+        answer.observe(p, g, 1.0, h)
+        step = -np.linalg.solve(h, g)
+        p = np.clip(p + step * min(1.0, lr / np.max(np.abs(step))), 0, 1)
+    return answer, p
+
+
+def test_the_estimate_is_calibrated_over_seeds():
+    ratios = []
+    for seed in range(200):
+        estimate = _run(seed, 120)[0].estimate()
+        assert estimate.kind == "newton" and estimate.standard_error is not None
+        ratios += list(np.abs(estimate.values - TRUTH) / estimate.standard_error)
+    ratios = np.asarray(ratios)
+    coverage = float(np.mean(ratios <= 2))
+    assert 0.92 <= coverage <= 0.98, coverage                 # calibrated: about 95%
+    assert 0.55 <= float(np.median(ratios)) <= 0.80            # not inflated: a Gaussian's median is 0.67
+
+
+def test_the_estimate_beats_the_last_iterate_and_improves_with_iterations():
+    last, short, long = [], [], []
+    for seed in range(40):
+        answer, p = _run(seed, 60)
+        last.append(np.max(np.abs(p - TRUTH)))
+        short.append(np.max(np.abs(answer.estimate().values - TRUTH)))
+        long.append(np.max(np.abs(_run(seed, 240)[0].estimate().values - TRUTH)))
+    assert np.median(short) < 0.6 * np.median(last)
+    assert np.median(long) < 0.7 * np.median(short)             # 4x the iterations: about half the error
+
+
+def test_the_window_leaves_out_iterations_where_the_quadratic_model_fails():
+    """Far from the answer the gradient curves (a cubic term): the Newton estimates of the slow
+    approach's iterations are biased, so the window starts once the iterates are near."""
+    for seed in range(5):
+        answer, _ = _run(seed, 300, start=(0.0, 1.0, 0.0), lr=0.005, cubic=40.0)   # ~120 iterations to arrive
+        estimate = answer.estimate()
+        assert estimate.start >= 60 and estimate.end == 299
+        assert np.max(np.abs(estimate.values - TRUTH) / estimate.standard_error) < 4
+    linear, _ = _run(0, 300, start=(0.0, 1.0, 0.0), lr=0.005)
+    assert linear.estimate().start == 0                          # a linear model: every iteration counts
+
+
+def test_few_iterations_give_the_last_iterate_without_an_error():
+    answer, p = _run(0, MIN_WINDOW - 1)
+    estimate = answer.estimate()
+    assert estimate.kind == "last" and estimate.standard_error is None
+    with pytest.raises(ValueError):
+        NewtonAnswer(np.zeros(1), np.ones(1)).estimate()
+
+
+def test_without_curvature_the_mean_and_its_batch_means_error_in_bounded_memory():
+    """AR(1) iterates around a known mean (correlated, as Adam's are): the batch-means error
+    covers the mean's error over seeds, and memory stays at most 2 x BATCHES batches."""
+    from services.solver.optimize.answer import BATCHES
+
+    ratios = []
+    for seed in range(100):
+        rng = np.random.default_rng(seed)
+        answer = MeanAnswer(np.zeros(2), np.ones(2))
+        x = np.array([0.5, 0.2])
+        for _ in range(1000):
+            x = 0.9 * x + 0.1 * np.array([0.5, 0.2]) + 0.01 * rng.standard_normal(2)
+            answer.observe(x, np.zeros(2), 1.0, None)
+            assert len(answer.counts) <= 2 * BATCHES
+        estimate = answer.estimate()
+        assert estimate.kind == "mean" and sum(answer.counts) == 1000
+        ratios += list(np.abs(estimate.values - [0.5, 0.2]) / estimate.standard_error)
+    assert 0.88 <= np.mean(np.asarray(ratios) <= 2) <= 0.99
+    assert 0.5 <= np.median(ratios) <= 0.85
+
+
+def test_halves_that_disagree_are_inconsistent():
+    same = (np.zeros(2), np.eye(2) * 0.01)
+    assert consistent(same, (np.array([0.1, -0.1]), np.eye(2) * 0.01))
+    assert not consistent(same, (np.array([1.0, -1.0]), np.eye(2) * 0.01))
+    assert chi2_quantile(1) == pytest.approx(6.63, rel=0.02) and chi2_quantile(6) == pytest.approx(16.81, rel=0.01)
