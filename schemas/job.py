@@ -345,10 +345,13 @@ class JobSpec(_Strict):
     def fingerprint(self) -> str:
         """Hash of everything that changes the computation (not the name): a checkpoint is only
         loaded into the job it belongs to, and an Idempotency-Key only returns the same job. A job
-        without ``warm_start``, and with the default ``stop``, hashes as before the field existed."""
-        exclude = {"name"} if self.warm_start is not None else {"name", "warm_start"}
-        if self.stop == StopSettings():
-            exclude.add("stop")
+        without ``warm_start``, with the default ``stop`` and ``textures.resolution``, hashes as
+        before those fields existed."""
+        exclude: dict = {"name": True} if self.warm_start is not None else {"name": True, "warm_start": True}
+        if self.stop == StopSettings():      # later fields, at their defaults, hash as before they existed
+            exclude["stop"] = True
+        if self.textures.resolution == "auto":
+            exclude["textures"] = {"resolution"}
         return hashlib.sha256(self.model_dump_json(exclude=exclude).encode()).hexdigest()[:16]
 
     @field_validator("adam_betas")

@@ -101,3 +101,29 @@ def test_halves_that_disagree_are_inconsistent():
     assert consistent(same, (np.array([0.1, -0.1]), np.eye(2) * 0.01))
     assert not consistent(same, (np.array([1.0, -1.0]), np.eye(2) * 0.01))
     assert chi2_quantile(1) == pytest.approx(6.63, rel=0.02) and chi2_quantile(6) == pytest.approx(16.81, rel=0.01)
+
+
+def test_the_floor_is_what_the_targets_noise_moves_the_answer_by():
+    """Linear images ȳ(p) = J p of two views, targets with white noise of known variance: the
+    floor estimated from pairs of noisy candidates' residuals matches H⁻¹ M H⁻¹ computed from the
+    true variance (within the sampling error of 400 pairs), and it is blind to the candidates' own
+    (much larger) noise."""
+    from services.solver.optimize.floor import Floor
+
+    rng = np.random.default_rng(0)
+    n, p = 2000, 2
+    jacobians = [rng.standard_normal((p, n)) for _ in range(2)]
+    truth = np.array([0.3, 0.6])
+    sigma_target, sigma_candidate = 0.05, 0.5
+    targets = [j.T @ truth + sigma_target * rng.standard_normal(n) for j in jacobians]
+    floor = Floor(views=2)
+    for k in range(400):
+        for view, (j, t) in enumerate(zip(jacobians, targets)):
+            candidate = j.T @ truth + sigma_candidate * rng.standard_normal(n)
+            floor.observe(k, view, candidate - t, j)
+    h = sum(2.0 / n * j @ j.T for j in jacobians)
+    h_inv = np.linalg.inv(h)
+    expected = h_inv @ sum(4.0 / n ** 2 * sigma_target ** 2 * j @ j.T for j in jacobians) @ h_inv
+    measured = floor.covariance(0, h_inv)
+    np.testing.assert_allclose(np.sqrt(np.diag(measured)), np.sqrt(np.diag(expected)), rtol=0.25)
+    assert floor.covariance(400, h_inv) is None                         # no pair in a window after the run

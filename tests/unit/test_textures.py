@@ -85,8 +85,12 @@ def test_texture_job_reports_summaries_and_files(mi, tmp_path):
     preparing = [e["what"] for e in events if e["type"] == "preparing"]   # said before the plan, not "starting"
     assert preparing == ["loading and checking the scene", "rendering 4 synthetic target(s) at 16 spp"]
     assert [e["type"] for e in events].index("plan") > [e["type"] for e in events].index("preparing")
-    assert summary["textures"][KEY] == {"npy": f"final/{KEY}.npy", "exr": f"final/{KEY}.exr", "png": f"final/{KEY}.png",
-                                        "target": f"final/{KEY}.target.npy", "target_exr": f"final/{KEY}.target.exr"}
+    files = {"npy": f"final/{KEY}.npy", "exr": f"final/{KEY}.exr", "png": f"final/{KEY}.png",
+             "target": f"final/{KEY}.target.npy", "target_exr": f"final/{KEY}.target.exr",
+             "last": f"final/{KEY}.last.npy", "last_exr": f"final/{KEY}.last.exr", "last_png": f"final/{KEY}.last.png"}
+    errors = {"standard_error": f"final/{KEY}.standard_error.npy", "standard_error_exr": f"final/{KEY}.standard_error.exr",
+              "standard_error_png": f"final/{KEY}.standard_error.png"}
+    assert summary["textures"][KEY] in (files, files | errors)   # the answer, the last iterate, its error map
     target = np.load(tmp_path / "job" / summary["textures"][KEY]["target"])
     assert np.allclose(target, true_albedo())
     final = np.load(tmp_path / "job" / summary["textures"][KEY]["npy"])

@@ -18,7 +18,7 @@ from services.solver.fields.field import NeuralField
 from services.solver.optimize.optimizers import ParameterOptimizer, make_optimizer
 from services.solver.optimize.recipe import Recipe
 from services.solver.optimize.setup import Prepared
-from services.solver.training.trainer import FieldTrainer, trainer_for
+from services.solver.training.trainer import FieldTrainer
 
 
 @dataclass
@@ -56,9 +56,10 @@ def build(prepared: Prepared, recipe: Recipe) -> Built:
     render = spec.render
     hybrid = recipe.fields_for is not None and recipe.fields_for != recipe.method
     field_user = make_method(recipe.fields_for, problem.plan, recipe.depth) if hybrid and recipe.fields_for else method
-    trainer = trainer_for(problem, field_user, spec.training, spec.seed, radiance=render.candidate == "field")
-    if hybrid and trainer is not None and trainer.differential is None:
-        raise ValueError("jacobian 'differential-field' needs dL_theta, and the effects turned it off")
+    trainer = None
+    if recipe.radiance or recipe.differential:
+        trainer = FieldTrainer(problem, spec.training, radiance=recipe.radiance, differential=recipe.differential,
+                               seed=spec.seed)
     jacobian_method = None
     if hybrid:
         jacobian_method = _cached(prepared, field_user, trainer, field_candidate=False, cached_lhs=True)

@@ -19,7 +19,7 @@ from services.solver.optimize.build import apply_effects
 from services.solver.optimize.resolve import resolve
 from services.solver.optimize.setup import prepare
 from services.solver.seeds import derive_seed
-from services.solver.training.trainer import fields_of, trainer_for
+from services.solver.training.trainer import FieldTrainer, fields_of
 
 log = logging.getLogger(__name__)
 
@@ -48,7 +48,8 @@ def evaluate_gradient(spec: JobSpec, method_name: str, *, spp: int | None = None
     steps = spec.training.warmup_steps if train_steps is None else train_steps
 
     start = time.perf_counter()
-    trainer = trainer_for(problem, method, spec.training, spec.seed)
+    trainer = (FieldTrainer(problem, spec.training, radiance=recipe.radiance, differential=recipe.differential,
+                            seed=spec.seed) if recipe.radiance or recipe.differential else None)
     if trainer is not None:
         trainer.train(steps)
     trained = time.perf_counter()

@@ -109,6 +109,7 @@ class Recipe:
                     or the many-parameter head, which simulates every effect)
     ``effects``     what the fields simulate of the scene (:mod:`services.solver.scene.planner`)
     ``layout``      the derivatives carried: active scalars and their RGB channels
+    ``radiance``, ``differential``  the fields the run trains (L_phi, dL_theta)
     """
 
     method: str
@@ -123,6 +124,8 @@ class Recipe:
     decisions: tuple[Decision, ...]
     warnings: tuple[str, ...] = ()   # what the job's own choices cost (a truncated depth, a forced effect)
     texture_blocks: tuple[tuple[str, int], ...] = ()   # each texture's block side (1: its own resolution)
+    radiance: bool = False       # whether the run trains L_phi
+    differential: bool = False   # whether the run trains dL_theta
 
     def to_json(self) -> dict:
         return {"method": self.method, "optimizer": self.steps.optimizer, "jacobian": self.jacobian,
@@ -132,4 +135,5 @@ class Recipe:
                 "trust_growth": self.steps.trust_growth, "trust_start": self.steps.trust_start,
                 "curvature": self.steps.curvature if self.steps.second_order else None,
                 "stop": asdict(self.stop), "texture_blocks": dict(self.texture_blocks),
+                "fields": {"radiance": self.radiance, "differential": self.differential},
                 "decisions": [asdict(d) for d in self.decisions], "warnings": list(self.warnings)}

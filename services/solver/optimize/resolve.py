@@ -38,10 +38,11 @@ from typing import Protocol
 
 import numpy as np
 
+from schemas.errors import InvalidJob
 from schemas.job import JobSpec
 from schemas.methods import AUTO, Method
 from services.solver.estimators.layout import DerivativeLayout
-from services.solver.estimators.methods import method_class
+from services.solver.estimators.methods import make_method, method_class
 from services.solver.estimators.methods.prb import channel_groups
 from services.solver.estimators.render import PathDepth
 from services.solver.optimize.recipe import BatchRule, Decision, Recipe, Steps
@@ -49,6 +50,7 @@ from services.solver.optimize.stopping import StopRule
 from services.solver.scene.facts import SceneFacts
 from services.solver.scene.footprint import pixels_per_texel
 from services.solver.scene.planner import EffectPlan, plan_effects
+from services.solver.training.trainer import trained_fields
 
 #: A texture needs this many pixels per texel (median over its footprint) to be optimized at its own resolution.
 PIXELS_PER_TEXEL = 4
@@ -164,9 +166,27 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
                   curvature_every=spec.jacobian_every, trust_growth=growth, trust_start=start)
     stop = _stop(spec, optimizer, decide)
     blocks = _texture_blocks(spec, parameters, measures, decide) if parameters.has_textures else ()
+    radiance, differential = _fields(spec, method, planned_for, effects, depth)
     return Recipe(method=method, jacobian=spec.jacobian, fields_for=planned_for, depth=depth, effects=effects,
                   layout=layout, steps=steps, batch=batch, stop=stop, decisions=tuple(decisions),
-                  warnings=tuple(warnings), texture_blocks=blocks)
+                  warnings=tuple(warnings), texture_blocks=blocks, radiance=radiance, differential=differential)
+
+
+def _fields(spec: JobSpec, method: str, planned_for: str | None, effects: EffectPlan | None,
+            depth: PathDepth) -> tuple[bool, bool]:
+    """The fields the run trains, ``(L_phi, dL_theta)``: those of the method they serve, as the
+    effects shape it (:func:`services.solver.training.trainer.trained_fields`); both for the
+    many-parameter head; ``L_phi`` too when the candidate is the field's."""
+    field_candidate = spec.render.candidate == "field"
+    if spec.training.head is not None:
+        return True, True
+    if planned_for is None:
+        return field_candidate, False
+    radiance, differential = trained_fields(make_method(planned_for, effects, depth), effects, radiance=field_candidate)
+    if spec.jacobian == "differential-field" and not differential:
+        raise InvalidJob("jacobian", "jacobian 'differential-field' needs dL_theta, and the effects turned it off "
+                                     "(effects.differential_field, or no light bouncing between surfaces)")
+    return radiance, differential
 
 
 def _texture_blocks(spec: JobSpec, parameters: Parameters, measures: Measures, decide) -> tuple[tuple[str, int], ...]:

@@ -31,6 +31,7 @@ from services.solver.estimators.problem import Problem
 from services.solver.fields.averaging import WeightAverage
 from services.solver.fields.field import NeuralField
 from services.solver.fields.head import ParameterHead
+from services.solver.scene.planner import EffectPlan
 from services.solver.seeds import derive_seed
 from services.solver.training.head import HeadBatch, draw_head_batch, head_lhs, head_rhs_samples
 from services.solver.training.pool import ResidualPool
@@ -326,17 +327,23 @@ def layout_json(layout) -> dict:
     return {"scalars": [int(i) for i in layout.scalars], "channels": [[int(c) for c in cs] for cs in layout.channels]}
 
 
+def trained_fields(method: GradientMethod, effects: EffectPlan | None, *, radiance: bool = False) -> tuple[bool, bool]:
+    """Which fields a run of ``method`` (as its effects shape it) trains: ``(L_phi, dL_theta)``.
+
+    ``dL_theta`` when the method queries it; ``L_phi`` when the method queries it, when
+    ``dL_theta`` is trained and its residual contains ``∫ (∂f) L_phi`` (the effects decide; without
+    them: whenever ∂f is attached, which it is), or when asked (``radiance``: the candidate image
+    comes from it)."""
+    differential = method.needs_differential
+    for_residual = effects.radiance_field.value if effects is not None else True
+    return radiance or method.needs_radiance or (differential and bool(for_residual)), differential
+
+
 def trainer_for(problem: Problem, method: GradientMethod, config: TrainingConfig, seed: int, *,
                 radiance: bool = False) -> FieldTrainer | None:
-    """The trainer of exactly the fields ``method`` uses (none for ``direct`` and ``prb``).
-
-    ``L_phi`` is trained when the method queries it, when ``dL_theta`` is trained and its
-    residual contains ``∫ (∂f) L_phi`` (the plan decides; without a plan: whenever ∂f is attached),
-    or when asked (``radiance``: the candidate image comes from it).
-    """
-    differential = method.needs_differential
-    for_residual = problem.plan.radiance_field.value if problem.plan is not None else problem.attach_bsdf
-    radiance = radiance or method.needs_radiance or (differential and bool(for_residual))
+    """The trainer of exactly the fields ``method`` uses (none for ``direct`` and ``prb``), for
+    a gradient evaluated outside a run (a run's trainer follows its recipe)."""
+    radiance, differential = trained_fields(method, problem.plan, radiance=radiance)
     if not (radiance or differential):
         return None
     return FieldTrainer(problem, config, radiance=radiance, differential=differential, seed=seed)
