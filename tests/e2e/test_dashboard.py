@@ -117,6 +117,12 @@ def test_submit_a_job_and_watch_it_live(page, api, tmp_path):
     assert final["count"] == 20 and final["points"] == 20
     assert page.get_by_test_id("iteration-counter").text_content() == "20 / 20"
     assert page.get_by_test_id("cancel-button").is_hidden()
+    # the answer: why the run stopped, the estimate and its standard error beside the last iterate,
+    # each parameter's estimate with its band of ± 2 standard errors
+    page.wait_for_function("document.querySelector('[data-testid=stop-reason]')?.textContent.includes('cap of 20')")
+    header = page.locator("[data-testid=parameter-table] thead").text_content()
+    assert "estimate" in header and "± SE" in header and "last iterate" in header
+    assert page.locator("[data-testid=parameter-charts] path.chart-band").count() >= 3
 
     # history and images: the render beside the target, the gradient of a chosen iteration
     page.wait_for_function("document.querySelector('[data-testid=render-image]').naturalWidth > 0")
