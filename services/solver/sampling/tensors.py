@@ -53,12 +53,24 @@ def mask(value: Bool) -> torch.Tensor:
     return flat(value)
 
 
-def color(t: torch.Tensor) -> Color:
-    """``mi.Color3f`` of a ``(K, 3)`` tensor (DLPack, on the device)."""
+def tensor(value) -> torch.Tensor:
+    """The torch tensor viewing a ``mi.TensorXf`` (a developed film: ``(H, W, channels)``; no copy)."""
+    value = dr.detach(value)
+    dr.eval(value)
+    _synchronized()
+    return value.torch()
+
+
+def floats(t: torch.Tensor) -> Float:
+    """``mi.Float`` of a ``(K,)`` tensor (DLPack, on the device)."""
     if device().kind == "cuda":
         torch.cuda.synchronize()                     # torch's kernels done before Dr.Jit reads
-    t = t.detach().to(torch.float32)
-    return mi.Color3f(*(mi.Float(t[:, c].contiguous()) for c in range(3)))
+    return mi.Float(t.detach().to(torch.float32).contiguous())
+
+
+def color(t: torch.Tensor) -> Color:
+    """``mi.Color3f`` of a ``(K, 3)`` tensor (DLPack, on the device)."""
+    return mi.Color3f(*(floats(t[:, c]) for c in range(3)))
 
 
 def to_device(array: np.ndarray, dtype: torch.dtype | None = None) -> torch.Tensor:

@@ -83,7 +83,7 @@ class CameraHitMethod(GradientMethod):
         total = np.zeros((problem.layout.active, height, width, 3))
         for k in range(passes):
             samples, values = self._rays(problem, fields, sensor_obj, per_pass, derive_seed(seed, "camera", k))
-            total += develop(sensor_obj, samples, to_host(values))
+            total += to_host(develop(sensor_obj, samples, values))
         return problem.layout.scatter_images((total / passes).astype(np.float32), problem.parameters.n)
 
     def loss_gradient(self, problem, fields, dz_dy, *, spp, seed, sensor=0):

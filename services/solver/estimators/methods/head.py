@@ -171,8 +171,7 @@ class NdrfHead(GradientMethod):
             d_exact = torch.stack([rgb(row[0]) for row in rows], 1)                          # (K, P, 3)
             with torch.no_grad():
                 d_head = rgb(t1)[:, None, :] * head.combine(p.basis, head.coefficients)      # (K, P, 3)
-            values = to_host(p.scale[:, None, :] * (d_exact + d_head))
-            out += develop(sensor_obj, p.samples, values)
+            out += to_host(develop(sensor_obj, p.samples, p.scale[:, None, :] * (d_exact + d_head)))
         return (out / passes).astype(np.float32)
 
 
