@@ -31,6 +31,7 @@ from schemas.errors import InvalidJob
 from schemas.job import JobSpec
 from schemas.outcomes import Outcome
 from schemas.records import IterationRecord
+from services.solver.backend import describe_device
 from services.solver.estimators.losses import ImageLoss
 from services.solver.estimators.methods import GradientMethod
 from services.solver.optimize import checkpoint
@@ -386,6 +387,7 @@ class InverseRenderingRun:
             "effects": problem.plan.to_json() if problem.plan is not None else None,
             "iterations": self.spec.iterations,
             "warm_start": self.warm_report,
+            "device": describe_device(),
         }
 
     def _checkpoint(self, state: RunState, recipe: Recipe, trainer: FieldTrainer | None) -> None:
