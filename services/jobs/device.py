@@ -28,8 +28,10 @@ def probe_device() -> dict:
     from services.settings import get_settings
 
     requested = get_settings().device
+    base = Path(tempfile.gettempdir()) / "ndrf-device"     # the sandbox hides the work folder's parent
+    base.mkdir(exist_ok=True)
     try:
-        with tempfile.TemporaryDirectory(prefix="ndrf-device-") as work:
+        with tempfile.TemporaryDirectory(dir=base) as work:
             kind, meta = exchange("device", {}, ChildLimits(wall_seconds=PROBE_SECONDS), Path(work), "the device probe")
     except ChildFailed as exc:
         return {"device": "unavailable", "requested": requested, "reason": str(exc)}

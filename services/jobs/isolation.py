@@ -152,7 +152,10 @@ def _environment() -> dict[str, str]:
 
     env = {k: v for k, v in os.environ.items() if k in _KEEP}
     env["NDRF_DEVICE"] = get_settings().device
-    env["PYTHONPATH"] = str(ROOT)  # the child imports this checkout's code, whatever the cwd
+    # the child imports this checkout's code, whatever the cwd, then what the parent's path adds
+    # (packages unpacked beside the interpreter's, as bench/gpu_check.sh does on a lent GPU)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *(p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep)
+                                                       if p and Path(p).resolve() != ROOT)])
     env.setdefault("PYTHONHASHSEED", "0")
     return env
 

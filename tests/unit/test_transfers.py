@@ -27,9 +27,12 @@ import torch
 
 from tests.support.transfers import Ledger, host_transfers
 
-RESOLUTION = (16, 16)
+RESOLUTION = (64, 64)   # 4096 pixels, 16384 rays at 4 spp: a lane array is 64 KiB, far above COPY_BYTES
 KEYS = ["red.reflectance.value", "light.emitter.radiance.value"]   # a BSDF and an emitter: ∂f and ∂E
 SCALAR = 1
+#: On CUDA, host<->device copies up to this size are not lane data (kernel parameters, one-lane
+#: literals, the parameter vector); every lane array of these tests is at least 4 times larger.
+COPY_BYTES = 16 << 10
 
 
 def _problem(mi, rfilter: str = "box"):
@@ -48,7 +51,7 @@ def _trainer(problem, pooled: bool):
     from schemas.solver import PoolConfig, TrainingConfig
     from services.solver.training.trainer import FieldTrainer
 
-    config = TrainingConfig(residual_points=256, incident_samples=4,
+    config = TrainingConfig(residual_points=1024, incident_samples=16,
                             pool=PoolConfig(enabled=pooled, chunks=1, reuse=1))   # every step draws afresh
     return FieldTrainer(problem, config, radiance=True, differential=True, seed=3)
 
@@ -98,7 +101,7 @@ def test_a_training_step_moves_nothing_but_scalars_through_the_host(mi, pooled):
     problem = _problem(mi)
     trainer = _trainer(problem, pooled)
     trainer.step()                   # the first step calibrates the output scales (read once, logged)
-    with _device_copies(bytes_over=8 * problem.parameters.n) as copies, host_transfers() as ledger:
+    with _device_copies(bytes_over=COPY_BYTES) as copies, host_transfers() as ledger:
         stats = trainer.step()
     assert np.isfinite(stats.radiance_loss) and np.isfinite(stats.differential_loss)
     assert ledger.of("drjit->host") or ledger.of("torch->host"), "the hook saw nothing: is it installed?"
@@ -117,11 +120,11 @@ def test_a_field_query_moves_only_its_input_and_its_output(mi, rfilter):
 
     problem = _problem(mi, rfilter)
     radiance, differential = _fields(problem, _trainer(problem, pooled=True))
-    cache = FirstHitCache(problem, [0], 2, seed=4, fields=[radiance, differential])
+    cache = FirstHitCache(problem, [0], 4, seed=4, fields=[radiance, differential])
     width, height = RESOLUTION
     dz_dy = np.random.default_rng(0).normal(size=(height, width, 3))
     image = height * width * 3
-    with _device_copies(bytes_over=8 * problem.parameters.n) as copies, host_transfers() as ledger:
+    with _device_copies(bytes_over=COPY_BYTES) as copies, host_transfers() as ledger:
         candidate = cache.candidate(0, radiance)
         dz_dp = cache.loss_gradient(0, differential, dz_dy)
     assert candidate.shape == (height, width, 3) and dz_dp.shape == (problem.parameters.n,)
@@ -131,7 +134,10 @@ def test_a_field_query_moves_only_its_input_and_its_output(mi, rfilter):
     outputs = ledger.larger_than("torch->host", problem.parameters.n)
     assert [t.size for t in outputs] == [image], f"only the candidate image may be read back:\n{ledger}"
     assert not ledger.larger_than("drjit->host", problem.parameters.n), f"Dr.Jit lanes read to the host:\n{ledger}"
-    assert [size for _, size in copies] in ([], [image * 4], [image * 8], [image * 4, image * 8]), copies
+    from services.solver.backend import device
+
+    # on CUDA: the candidate image back (float32) and dz/dy in (float64), nothing else of that size
+    assert sorted(size for _, size in copies) == ([image * 4, image * 8] if device().kind == "cuda" else []), copies
 
 
 def test_the_ndrf_rhs_gradient_moves_only_its_input_and_its_output(mi):
