@@ -113,7 +113,9 @@ def _write(out: Path, result: dict) -> None:
     out.write_text(json.dumps(result, indent=1))
     machine = result["machine"]
     stamp = ", ".join(f"{k} {v}" for k, v in machine.items() if v is not None and not isinstance(v, dict))
-    out.with_suffix(".md").write_text(f"Machine: {stamp}\nCommand: `{result['command']}`\n\n{table(result)}\n")
+    load = ", ".join(f"{k} {v[0]:.1f}" for k, v in result["load_average"].items())
+    out.with_suffix(".md").write_text(f"Machine: {stamp}\nCommand: `{result['command']}`\n\n{table(result)}\n\n"
+                                      f"Load average (1 min) at the {load}.\n")
 
 
 def run(out: Path, *, cpu: Path | None, iterations: int, budget: float, deadline: float,
@@ -122,7 +124,8 @@ def run(out: Path, *, cpu: Path | None, iterations: int, budget: float, deadline
 
     started = time.perf_counter()
     result: dict = {"machine": machine(), "command": "NDRF_DEVICE={} python -m bench.gpu_check".format(
-        os.environ.get("NDRF_DEVICE", "auto")), "jobs": {}, "methods": {}, "skipped": []}
+        os.environ.get("NDRF_DEVICE", "auto")), "jobs": {}, "methods": {}, "skipped": [],
+        "load_average": {"start": list(os.getloadavg())}}   # other processes on the machine slow every figure
     if cpu is not None and cpu.exists():
         saved = json.loads(cpu.read_text())
         result["cpu"] = {"machine": saved["machine"], "jobs": saved["jobs"], "methods": saved["methods"]}
@@ -144,6 +147,7 @@ def run(out: Path, *, cpu: Path | None, iterations: int, budget: float, deadline
             result[group][name] = {"error": f"{type(exc).__name__}: {exc}"}
         log.info("%s/%s: %s", group, name, result[group][name])
         result["seconds"] = time.perf_counter() - started
+        result["load_average"]["end"] = list(os.getloadavg())
         _write(out, result)
     return result
 
