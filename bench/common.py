@@ -39,7 +39,10 @@ def machine() -> dict:
     from services.solver.backend import describe_device
 
     device = describe_device()
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    try:   # a lent GPU machine gets a copy of the tree, perhaps without git
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    except OSError:
+        commit = ""
     return {"cpu": cpu, "cores": os.cpu_count(), "memory": memory, "python": platform.python_version(),
             "mitsuba": mitsuba.__version__, "drjit": drjit.__version__, "torch": torch.__version__,
             "device": device["device"], "device_name": device["name"], "commit": commit or None}
