@@ -61,7 +61,8 @@ class Worker:
             for sig in (signal.SIGTERM, signal.SIGINT):
                 signal.signal(sig, lambda *_: self.request_stop())
         log.info("worker %s started; child sandbox: %s", self.name, sandbox_state())
-        self.device.get()   # probed in the background: the jobs' device, logged when known
+        if not burst:   # probed in the background (a child): the jobs' device, logged when known
+            self.device.get()
         reason = "stopped"
         try:
             while not self.stopping.is_set():
