@@ -99,7 +99,7 @@ def develop(sensor: mi.Sensor, samples: CameraSamples, values: torch.Tensor) -> 
         block.put(samples.position, value + ([mi.Float(1.0)] if has_alpha else []) + [mi.Float(1.0)])
         film.put_block(block)
         images.append(tensor(film.develop())[..., :3])
-    return torch.stack(images)   # a copy: the film's buffer is reused by the next channel
+    return torch.stack(images)   # (C, H, W, 3), in torch's memory: the views of the developed films end here
 
 
 def camera_points(scene: mi.Scene, sensor: mi.Sensor, seed: int, count: int, delta_depth: int):
