@@ -12,8 +12,10 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     NDRF_STORE=/data/runs
 
 WORKDIR /app
-# The CPU wheel of torch first: an unpinned torch pulls several GB of CUDA packages.
-RUN pip install --no-cache-dir --index-url https://download.pytorch.org/whl/cpu torch==2.13.0
+# The CPU wheel of torch first: an unpinned torch pulls several GB of CUDA packages. The compose
+# profile "gpu" builds with TORCH_INDEX=https://pypi.org/simple: PyPI's default wheel, with CUDA.
+ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu
+RUN pip install --no-cache-dir --index-url ${TORCH_INDEX} torch==2.13.0
 
 COPY pyproject.toml README.md ./
 COPY schemas/ schemas/

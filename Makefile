@@ -8,7 +8,7 @@ BIN := $(VENV)/bin
 LLVM := /usr/lib/x86_64-linux-gnu/libLLVM-19.so
 export DRJIT_LIBLLVM_PATH ?= $(LLVM)
 
-.PHONY: install system-deps demo check test test-fast docs bench-docs bench clean
+.PHONY: install install-cuda system-deps demo check test test-fast docs bench-docs bench clean
 
 system-deps:
 	@if [ ! -e "$(LLVM)" ]; then \
@@ -26,6 +26,12 @@ $(BIN)/ndrf: pyproject.toml
 	touch $(BIN)/ndrf
 
 install: $(BIN)/ndrf
+
+# A GPU machine: torch's CUDA build (PyPI's default wheel; several GB of CUDA libraries as pip
+# packages) over the CPU wheel. Mitsuba's and Dr.Jit's wheels hold their CUDA variants already.
+# NDRF_DEVICE=auto (the default) then runs on the GPU (docs/guide/deployment.md#gpus).
+install-cuda: install
+	$(BIN)/pip install --force-reinstall --index-url https://pypi.org/simple torch==2.13.0
 
 demo: install
 	$(BIN)/ndrf -v run examples/demo.json --out runs/demo

@@ -21,6 +21,7 @@ from api.guard import Guard
 from api.routes import artifacts, events, experiments, field_views, health, jobs, scenes
 from api.routes.health import Snapshot
 from api.streams import StreamHub
+from services.jobs.device import DeviceReport
 from services.runtime import build_runtime
 from services.settings import Settings, get_settings
 
@@ -40,6 +41,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         runtime.blocking = anyio.CapacityLimiter(settings.preflight_workers)
         app.state.runtime = runtime
         app.state.snapshot = Snapshot(runtime)
+        app.state.device = DeviceReport()
         if runtime.embedded:
             missing = await anyio.to_thread.run_sync(runtime.service.reconcile, 0.0)
             if missing:

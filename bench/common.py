@@ -21,7 +21,8 @@ def _lines(path: str) -> list[str]:
 
 
 def machine() -> dict:
-    """What the numbers were measured on."""
+    """What the numbers were measured on: the machine and the device the solver runs on
+    (``NDRF_DEVICE``, :func:`services.solver.backend.describe_device`)."""
     cpu = platform.processor() or platform.machine()
     for line in _lines("/proc/cpuinfo"):
         if line.startswith("model name"):
@@ -35,10 +36,16 @@ def machine() -> dict:
     import mitsuba
     import torch
 
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    from services.solver.backend import describe_device
+
+    device = describe_device()
+    try:   # a lent GPU machine gets a copy of the tree, perhaps without git
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    except OSError:
+        commit = ""
     return {"cpu": cpu, "cores": os.cpu_count(), "memory": memory, "python": platform.python_version(),
             "mitsuba": mitsuba.__version__, "drjit": drjit.__version__, "torch": torch.__version__,
-            "commit": commit or None}
+            "device": device["device"], "device_name": device["name"], "commit": commit or None}
 
 
 def relative_error(g: np.ndarray, reference: np.ndarray) -> float:

@@ -157,7 +157,18 @@ class Settings(BaseSettings):
         default_factory=list, description="More folders covered by an empty read-only tmpfs in sandboxed children "
                                           "(comma-separated): credentials or data the service's uid can read and "
                                           "a child must not (the store folder and the scratch folders always are).")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="Where jobs, views and scene checks run (NDRF_DEVICE, passed to every child): cpu "
+                            "(Mitsuba's llvm_ad_rgb, torch on the CPU), cuda (cuda_ad_rgb and torch on the first "
+                            "visible GPU; a child refuses to start where either cannot run), or auto (cuda where "
+                            "both run, else cpu, with the reason logged). One GPU per worker: CUDA_VISIBLE_DEVICES "
+                            "(docs/guide/deployment.md).")
     limits: Limits = Field(default_factory=Limits)
+
+    @field_validator("device", mode="before")
+    @classmethod
+    def _device(cls, value):
+        return value.strip().lower() or "auto" if isinstance(value, str) else value
 
     @field_validator("api_keys", "admin_keys", "sandbox_hide", mode="before")
     @classmethod

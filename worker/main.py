@@ -25,6 +25,7 @@ from pathlib import Path
 
 from schemas.outcomes import Outcome
 from schemas.records import ACTIVE, JobStatus
+from services.jobs.device import DeviceReport
 from services.jobs.isolation import sandbox_state
 from services.jobs.runner import AttemptResult, AttemptRunner
 from services.jobs.service import JobService
@@ -47,6 +48,9 @@ class Worker:
         self.consumer = f"{self.name}/{uuid.uuid4().hex[:8]}"   # unique even if a restarted worker reuses its name
         self.current: str | None = None
         self.attempt: str | None = None
+        self.device = DeviceReport(on_known=lambda d: log.info(
+            "worker %s: jobs run on %s (%s; NDRF_DEVICE=%s: %s)", self.name, d.get("device"), d.get("name", ""),
+            d.get("requested", ""), d.get("reason", "")))
 
     # ---------------------------------------------------------------- the loop
 
@@ -57,6 +61,8 @@ class Worker:
             for sig in (signal.SIGTERM, signal.SIGINT):
                 signal.signal(sig, lambda *_: self.request_stop())
         log.info("worker %s started; child sandbox: %s", self.name, sandbox_state())
+        if not burst:   # probed in the background (a child): the jobs' device, logged when known
+            self.device.get()
         reason = "stopped"
         try:
             while not self.stopping.is_set():

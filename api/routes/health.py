@@ -1,5 +1,6 @@
 """``/healthz`` and ``/metrics`` (Prometheus text format).
 
+Both name the device this process's children run on (:mod:`services.jobs.device`, probed once).
 ``/metrics`` is cheap: job counts, phase timings and the store's size come from a snapshot that a
 background thread refreshes every ``SNAPSHOT_SECONDS`` (one scan of the store per period, whatever
 the scrape rate). With ``NDRF_METRICS_PUBLIC=false`` it needs an admin key.
@@ -35,11 +36,17 @@ class Health(BaseModel):
     detail: str | None = Field(None, description="Which part is unavailable, when not ok (no internals).")
     runner_restarts: int | None = Field(None, description="Embedded mode: job runner threads that died and were "
                                                           "restarted since the API started.")
+    device: dict | None = Field(None, description="The device this process's children run on (jobs in embedded "
+                                                  "mode, views, scene checks): {device: cpu or cuda, name, variant, "
+                                                  "requested: NDRF_DEVICE, reason}, probed once in a child at the "
+                                                  "first /healthz (null until known). Workers log theirs at "
+                                                  "start-up; each job's plan.json names its own.")
 
 
 @router.get("/healthz", response_model=Health, responses={503: {"model": Health}})
-def healthz(runtime: RuntimeDep):
+def healthz(request: Request, runtime: RuntimeDep):
     mode = "embedded" if runtime.embedded else "redis"
+    device = request.app.state.device.get()
     part = "store"
     try:
         runtime.store.put(".healthz", b"ok")
@@ -47,16 +54,16 @@ def healthz(runtime: RuntimeDep):
         depth = runtime.queue.depth()
     except Exception:  # the reason goes to the log, not to anonymous clients
         log.exception("health check: %s unavailable", part)
-        return JSONResponse(Health(status="unavailable", mode=mode, detail=f"{part} unavailable").model_dump(),
-                            status_code=503)
+        return JSONResponse(Health(status="unavailable", mode=mode, detail=f"{part} unavailable",
+                                   device=device).model_dump(), status_code=503)
     restarts = runtime.runner_restarts if runtime.embedded else None
     dead = [t.name for t in runtime.threads if t is not None and not t.is_alive()]
     if dead:   # the supervisor restarts it within a second or so
         return JSONResponse(Health(status="unavailable", mode=mode, queue=depth, runner_restarts=restarts,
-                                   detail=f"{len(dead)} job runner(s) stopped; restarting").model_dump(),
+                                   detail=f"{len(dead)} job runner(s) stopped; restarting", device=device).model_dump(),
                             status_code=503)
     detail = f"{restarts} job runner restart(s) since start-up" if restarts else None
-    return Health(status="ok", mode=mode, queue=depth, runner_restarts=restarts, detail=detail)
+    return Health(status="ok", mode=mode, queue=depth, runner_restarts=restarts, detail=detail, device=device)
 
 
 class Snapshot:
@@ -103,8 +110,8 @@ class Snapshot:
 
 
 class ServiceCollector:
-    def __init__(self, runtime, snapshot: Snapshot):
-        self.runtime, self.snapshot = runtime, snapshot
+    def __init__(self, runtime, snapshot: Snapshot, device: dict | None = None):
+        self.runtime, self.snapshot, self.device = runtime, snapshot, device
 
     def collect(self):
         queue = GaugeMetricFamily("ndrf_queue_depth", "Jobs in the queue.", labels=["state"])
@@ -125,6 +132,12 @@ class ServiceCollector:
                                 value=self.snapshot.store_bytes)
         yield GaugeMetricFamily("ndrf_metrics_snapshot_age_seconds", "Age of the snapshot.",
                                 value=time.time() - self.snapshot.taken)
+        info = GaugeMetricFamily("ndrf_device_info", "The device this process's children run on (1; absent until "
+                                 "probed, see /healthz).", labels=["device", "name", "requested"])
+        if self.device is not None:
+            info.add_metric([str(self.device.get("device", "")), str(self.device.get("name", "")),
+                             str(self.device.get("requested", ""))], 1)
+        yield info
 
 
 @router.get("/metrics", response_class=PlainTextResponse, summary="Prometheus metrics")
@@ -134,5 +147,5 @@ def metrics(request: Request, runtime: RuntimeDep, settings: SettingsDep):
     snapshot = request.app.state.snapshot
     snapshot.ensure_running()
     registry = CollectorRegistry()
-    registry.register(ServiceCollector(runtime, snapshot))
+    registry.register(ServiceCollector(runtime, snapshot, request.app.state.device.get()))
     return PlainTextResponse(generate_latest(registry).decode(), media_type="text/plain; version=0.0.4")

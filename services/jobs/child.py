@@ -14,6 +14,8 @@
 ``view``      render a job's fields from a camera (:mod:`services.solver.optimize.field_views`):
               answers ``viewed`` {scalars, seconds, camera, iteration} with the arrays
               ``radiance``, ``gradients`` and ``prb`` (when asked), or ``invalid`` {field, message}
+``device``    the device this child runs on (``NDRF_DEVICE`` resolved: :mod:`services.jobs.device`):
+              answers ``device`` {device, name, variant, requested, reason}
 ``run``       run the job (:class:`services.solver.optimize.loop.InverseRenderingRun`), forwarding
            every report as a frame (``plan``, ``targets``, ``progress``, ``iteration``,
            ``checkpoint``) and ending with ``outcome``. SIGUSR1 asks it to cancel, SIGTERM to stop
@@ -176,6 +178,12 @@ def probe(start: dict, out) -> None:
     })
 
 
+def device(start: dict, out) -> None:
+    from services.solver.backend import describe_device
+
+    write_frame(out, "device", describe_device())
+
+
 def run(start: dict, out) -> None:
     from schemas.job import JobSpec
     from services.solver.backend import use_torch
@@ -289,7 +297,7 @@ def main(argv: list[str]) -> int:
         probe(start, out)
         return 0
     _mitsuba_log_to_stderr()
-    {"check": check, "describe": describe, "view": view, "views": views, "run": run}[mode](start, out)
+    {"check": check, "describe": describe, "view": view, "views": views, "run": run, "device": device}[mode](start, out)
     return 0
 
 

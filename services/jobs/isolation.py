@@ -46,9 +46,12 @@ log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parents[2]
 
-#: Variables a child may inherit (nothing secret: no keys, no URLs, no credentials).
+#: Variables a child may inherit (nothing secret: no keys, no URLs, no credentials), the GPU's too:
+#: which devices it sees and where the driver's libraries are. NDRF_DEVICE is the Settings' value.
 _KEEP = ("PATH", "LANG", "LC_ALL", "HOME", "TMPDIR", "DRJIT_LIBLLVM_PATH", "NDRF_TORCH_THREADS", "PYTHONHASHSEED",
-         "DRJIT_CACHE_DIR")
+         "DRJIT_CACHE_DIR", "CUDA_VISIBLE_DEVICES", "LD_LIBRARY_PATH", "DRJIT_LIBCUDA_PATH")
+#: Present where an NVIDIA driver is loaded.
+NVIDIA_DEVICE = Path("/dev/nvidiactl")
 _LOADING = re.compile(r'Loading (?:mesh|XML file|texture|bitmap|spectrum)?\s*(?:from )?"([^"]+)"', re.IGNORECASE)
 
 
@@ -145,8 +148,14 @@ def _command(mode: str, limits: ChildLimits, cwd: Path) -> list[str]:
 
 
 def _environment() -> dict[str, str]:
+    from services.settings import get_settings
+
     env = {k: v for k, v in os.environ.items() if k in _KEEP}
-    env["PYTHONPATH"] = str(ROOT)  # the child imports this checkout's code, whatever the cwd
+    env["NDRF_DEVICE"] = get_settings().device
+    # the child imports this checkout's code, whatever the cwd, then what the parent's path adds
+    # (packages unpacked beside the interpreter's, as bench/gpu_check.sh does on a lent GPU)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *(p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep)
+                                                       if p and Path(p).resolve() != ROOT)])
     env.setdefault("PYTHONHASHSEED", "0")
     return env
 
@@ -163,13 +172,24 @@ def apply_limits(limits: dict) -> None:
     if os.getppid() == 1:  # the parent died before PDEATHSIG was set
         os._exit(1)
     keep_priority()
-    resource.setrlimit(resource.RLIMIT_AS, (limits["memory_bytes"], limits["memory_bytes"]))
+    resource.setrlimit(memory_limit(), (limits["memory_bytes"], limits["memory_bytes"]))
     resource.setrlimit(resource.RLIMIT_NOFILE, (limits["open_files"], limits["open_files"]))
     resource.setrlimit(resource.RLIMIT_FSIZE, (limits["file_bytes"], limits["file_bytes"]))
     resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
     if limits.get("cpu_seconds") is not None:
         resource.setrlimit(resource.RLIMIT_CPU, (limits["cpu_seconds"], limits["cpu_seconds"] + 5))
     sandbox.enter(limits.get("sandbox", {}))
+
+
+def memory_limit(device: str | None = None, nvidia: bool | None = None) -> int:
+    """The rlimit that holds a child's memory: its address space (``RLIMIT_AS``), except where the
+    child may start CUDA (``NDRF_DEVICE`` not ``cpu`` on a machine with an NVIDIA driver). There
+    the driver reserves far more address space than the limit at its start, whatever memory it then
+    uses, and CUDA would not start: the limit is on the data segment instead (``RLIMIT_DATA``: the
+    heap and private writable mappings, which the reservation and GPU memory are not)."""
+    device = (os.environ.get("NDRF_DEVICE", "auto") if device is None else device).strip().lower()
+    nvidia = NVIDIA_DEVICE.exists() if nvidia is None else nvidia
+    return resource.RLIMIT_DATA if nvidia and device != "cpu" else resource.RLIMIT_AS
 
 
 def keep_priority() -> None:

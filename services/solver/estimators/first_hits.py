@@ -34,7 +34,7 @@ from services.solver.fields.query import FieldQuery
 from services.solver.jit_types import Bool, Color
 from services.solver.sampling.camera import CameraSamples, develop, sample_camera
 from services.solver.sampling.surface import queryable
-from services.solver.sampling.tensors import field_query, mask, rgb
+from services.solver.sampling.tensors import field_query, mask, rgb, to_device, to_host
 from services.solver.seeds import derive_seed
 
 log = logging.getLogger(__name__)
@@ -119,12 +119,10 @@ class FirstHitCache:
 
     # --------------------------------------------------------------- outputs
 
-    def _develop(self, view: CachedView, values: torch.Tensor) -> np.ndarray:
-        """Per-ray values ``(K, C, 3)`` -> images ``(C, H, W, 3)`` through the sensor's film."""
-        if view.box:
-            per_pixel = values.reshape(view.height, view.width, view.spp, values.shape[1], 3).double().mean(2)
-            return np.ascontiguousarray(per_pixel.permute(2, 0, 1, 3).numpy(), dtype=np.float32)
-        return develop(self.problem.scene.sensor(view.sensor), view.samples, values.numpy())
+    def _develop(self, view: CachedView, values: torch.Tensor) -> torch.Tensor:
+        """Per-ray values ``(K, C, 3)`` -> images ``(C, H, W, 3)`` through the sensor's film (on the
+        device)."""
+        return develop(self.problem.scene.sensor(view.sensor), view.samples, values)
 
     def candidate(self, sensor: int, radiance: NeuralField | None) -> np.ndarray:
         """The candidate image ``(H, W, 3)``: ``E + L_phi`` at the cached first hits (Eq. 1)."""
@@ -134,7 +132,7 @@ class FirstHitCache:
         if radiance is not None and len(view.query):
             with torch.no_grad():
                 value[view.surface] += radiance(view.query)
-        return self._develop(view, (view.scale * value)[:, None, :])[0]
+        return to_host(self._develop(view, (view.scale * value)[:, None, :])[0])
 
     def _derivatives(self, view: CachedView, differential: NeuralField | None) -> torch.Tensor:
         """``∂y_k`` ``(K, A, 3)``: ``w β (∂E + dL_theta)`` at the cached first hits (Eq. 11)."""
@@ -157,17 +155,18 @@ class FirstHitCache:
         d_y = self._derivatives(view, differential)
         out = np.zeros(problem.parameters.n)
         if not view.box:
-            images = self._develop(view, d_y)
-            out[list(problem.layout.scalars)] = np.einsum("ahwc,hwc->a", images.astype(np.float64), dz_dy)
+            images = self._develop(view, d_y).double()
+            out[list(problem.layout.scalars)] = to_host(torch.einsum("ahwc,hwc->a", images,
+                                                                     to_device(dz_dy, torch.float64)))
             return out
-        per_ray = torch.from_numpy(np.ascontiguousarray(dz_dy, dtype=np.float64)).reshape(-1, 1, 3)
+        per_ray = to_device(dz_dy, torch.float64).reshape(-1, 1, 3)
         per_pixel = d_y.double().reshape(-1, view.spp, d_y.shape[1], 3).sum(1) / view.spp     # (H·W, A, 3)
-        out[list(problem.layout.scalars)] = (per_pixel * per_ray).sum((0, 2)).numpy()
+        out[list(problem.layout.scalars)] = to_host((per_pixel * per_ray).sum((0, 2)))
         return out
 
     def images(self, sensor: int, differential: NeuralField | None) -> np.ndarray:
         """Gradient images ``(P, H, W, 3)`` (only for writing them: :meth:`loss_gradient` does not
         need them)."""
         view = self.views[sensor]
-        images = self._develop(view, self._derivatives(view, differential))
+        images = to_host(self._develop(view, self._derivatives(view, differential)))
         return self.problem.layout.scatter_images(images, self.problem.parameters.n)

@@ -11,6 +11,7 @@ puts ``(..., K)`` back with zeros in the channels not carried.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,8 +43,8 @@ class DerivativeLayout:
     def outputs(self) -> int:
         return sum(len(c) for c in self.channels)
 
-    @property
-    def _flat(self) -> torch.Tensor:
+    @functools.cached_property
+    def _flat(self) -> torch.Tensor:  # made once: on CUDA each torch.tensor(list) is a copy to the device
         return torch.tensor([a * 3 + c for a, chans in enumerate(self.channels) for c in chans], dtype=torch.long)
 
     def pack(self, t: torch.Tensor) -> torch.Tensor:

@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from schemas.job import JobSpec
+from services.solver.backend import describe_device
 from services.solver.estimators.losses import ImageLoss
 from services.solver.optimize import checkpoint
 from services.solver.optimize.answer import Answer, answer_for
@@ -101,6 +102,7 @@ def describe(prepared: Prepared, recipe: Recipe, built: Built, state: RunState, 
         depths["warnings"] = list(recipe.warnings)
     return {
         "method": recipe.method,
+        "device": describe_device(),
         "recipe": recipe.to_json(),
         "events": [asdict(e) for e in state.events],
         "realised_by": type(built.method).__name__,

@@ -12,10 +12,11 @@ from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
+import torch
 
 from services.solver.jit_types import Float, Vector
 from services.solver.sampling.delta import DeltaChain, trace_through_delta
+from services.solver.sampling.tensors import floats, tensor
 
 #: ``sample1`` of ``Sensor.sample_ray``: the wavelength sample (unused by RGB variants).
 WAVELENGTH_SAMPLE: Float = 0.5
@@ -73,30 +74,32 @@ def sample_camera(scene: mi.Scene, sensor: mi.Sensor, spp: int, seed: int,
     return CameraSamples(chain, weight, splat, spp), sampler
 
 
-def develop(sensor: mi.Sensor, samples: CameraSamples, values: np.ndarray) -> np.ndarray:
-    """Splat per-ray values ``(K, C, 3)`` through the sensor's film: ``(C, H, W, 3)``.
+def develop(sensor: mi.Sensor, samples: CameraSamples, values: torch.Tensor) -> torch.Tensor:
+    """Splat per-ray values ``(K, C, 3)`` through the sensor's film: ``(C, H, W, 3)`` float32, on the
+    solver's device (:func:`services.solver.sampling.tensors.to_host` for an image to write).
 
     With a box filter the film's weighted average is the plain mean of each pixel's ``spp``
     consecutive samples; it is computed here directly, which is deterministic (the film's
     parallel atomic accumulation is not bit-reproducible) and avoids one film pass per channel.
-    Other filters go through the film itself.
+    Other filters go through the film itself, the values handed to it and the image taken back
+    through DLPack (no copy through the host).
     """
     film = sensor.film()
     width, height = (int(v) for v in film.crop_size())
     channels = values.shape[1]
     if film.rfilter().is_box_filter():
-        per_pixel = values.reshape(height, width, samples.spp, channels, 3).astype(np.float64).mean(2)
-        return np.ascontiguousarray(per_pixel.transpose(2, 0, 1, 3), dtype=np.float32)
+        per_pixel = values.reshape(height, width, samples.spp, channels, 3).double().mean(2)
+        return per_pixel.permute(2, 0, 1, 3).float().contiguous()
     has_alpha = mi.has_flag(film.flags(), mi.FilmFlags.Alpha)
     images = []
     for c in range(channels):
         film.prepare([])
         block = film.create_block()
-        value: list[Float] = [mi.Float(np.ascontiguousarray(values[:, c, i])) for i in range(3)]
+        value: list[Float] = [floats(values[:, c, i]) for i in range(3)]
         block.put(samples.position, value + ([mi.Float(1.0)] if has_alpha else []) + [mi.Float(1.0)])
         film.put_block(block)
-        images.append(np.array(film.develop(), dtype=np.float32)[..., :3])
-    return np.stack(images)
+        images.append(tensor(film.develop())[..., :3])
+    return torch.stack(images)   # (C, H, W, 3), in torch's memory: the views of the developed films end here
 
 
 def camera_points(scene: mi.Scene, sensor: mi.Sensor, seed: int, count: int, delta_depth: int):

@@ -29,7 +29,7 @@ from services.solver.jit_types import Bool, Float
 from services.solver.sampling.camera import WAVELENGTH_SAMPLE, make_sampler, sample_camera
 from services.solver.sampling.incident import evaluate_attached, evaluate_incident, sample_geometry, sample_incident
 from services.solver.sampling.surface import SurfaceSampler, pure_delta, queryable, residual_shapes
-from services.solver.sampling.tensors import rgb
+from services.solver.sampling.tensors import rgb, to_host
 from services.solver.scene.load import LoadedScene
 from services.solver.scene.params import FORWARD_GROUP, ParameterSet
 from services.solver.seeds import derive_seed
@@ -205,7 +205,7 @@ def _accumulate(magnitude: np.ndarray, first: list, bounce: int, per_scalar: lis
     for i, grads in enumerate(per_scalar):
         peak = np.zeros(3)
         for g in grads:
-            values = np.nan_to_num(np.abs(rgb(g).numpy()), nan=0.0, posinf=0.0)
+            values = np.nan_to_num(np.abs(to_host(rgb(g))), nan=0.0, posinf=0.0)
             if values.size:
                 peak = np.maximum(peak, values.max(0))
         magnitude[i] = np.maximum(magnitude[i], peak)

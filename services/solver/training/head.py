@@ -36,7 +36,7 @@ from services.solver.fields.head import ParameterHead
 from services.solver.fields.query import FieldQuery
 from services.solver.sampling.camera import make_sampler
 from services.solver.sampling.incident import IncidentGeometry, evaluate_attached, evaluate_incident, sample_geometry
-from services.solver.sampling.tensors import field_query, mask, rgb
+from services.solver.sampling.tensors import field_query, mask, rgb, to_device
 from services.solver.seeds import derive_seed
 from services.solver.training.residuals import draw_geometry
 
@@ -108,7 +108,7 @@ def draw_head_batch(problem: Problem, n: int, m: int, scalars: int, seed: int,
     second_hits = mask(second.hit_surface)[hit_index]
     second_index = torch.nonzero(second_hits).squeeze(1)
     seconds = field_query(second.hit).select(hit_index[second_index])
-    return HeadBatch(g.points, g.weight, rgb(inc.throughput).reshape(n, m, 3), torch.from_numpy(drawn),
+    return HeadBatch(g.points, g.weight, rgb(inc.throughput).reshape(n, m, 3), to_device(drawn),
                      hit_index, field_query(first.hit).select(hit_index), stacked_e, stacked_t, second_index,
                      seconds, problem.parameters.values())
 

@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 import torch
 
 from services.solver.estimators.layout import DerivativeLayout
@@ -28,7 +27,7 @@ from services.solver.fields.field import NeuralField
 from services.solver.fields.query import FieldQuery
 from services.solver.sampling.camera import camera_points, make_sampler
 from services.solver.sampling.incident import IncidentGeometry, evaluate_incident, sample_geometry
-from services.solver.sampling.tensors import field_query, mask, rgb
+from services.solver.sampling.tensors import field_query, flat, mask, rgb
 from services.solver.seeds import derive_seed
 
 
@@ -120,7 +119,7 @@ def draw_geometry(problem: Problem, n: int, m: int, seed: int, camera_fraction: 
     geometry = sample_geometry(problem.scene.scene, si, sampler, delta_depth=problem.delta_depth)
     geometry.schedule()
     hit_index, hits = field_query(geometry.hit).compact(mask(geometry.hit_surface))
-    weight = torch.from_numpy(np.broadcast_to(np.array(points_weight, dtype=np.float32), (n,)).copy())
+    weight = flat(points_weight, n).clone()  # (n,): a literal weight is one lane wide
     return BatchGeometry(n, m, geometry, field_query(points_si), weight, hit_index, hits)
 
 

@@ -52,7 +52,7 @@ from services.solver.sampling.camera import CameraSamples, develop, sample_camer
 from services.solver.sampling.incident import IncidentGeometry, evaluate_attached, sample_geometry, sample_incident
 from services.solver.sampling.passes import passes_for
 from services.solver.sampling.surface import queryable
-from services.solver.sampling.tensors import field_query, mask, rgb
+from services.solver.sampling.tensors import field_query, mask, rgb, to_device, to_host
 from services.solver.seeds import derive_seed
 
 log = logging.getLogger(__name__)
@@ -83,7 +83,7 @@ class CameraHitMethod(GradientMethod):
         total = np.zeros((problem.layout.active, height, width, 3))
         for k in range(passes):
             samples, values = self._rays(problem, fields, sensor_obj, per_pass, derive_seed(seed, "camera", k))
-            total += develop(sensor_obj, samples, values)
+            total += to_host(develop(sensor_obj, samples, values))
         return problem.layout.scatter_images((total / passes).astype(np.float32), problem.parameters.n)
 
     def loss_gradient(self, problem, fields, dz_dy, *, spp, seed, sensor=0):
@@ -99,12 +99,12 @@ class CameraHitMethod(GradientMethod):
         if not sensor_obj.film().rfilter().is_box_filter():
             return super().loss_gradient(problem, fields, dz_dy, spp=spp, seed=seed, sensor=sensor)
         passes, per_pass = passes_for(width * height, spp, RAYS_PER_PASS)
-        pixel_weights = torch.from_numpy(np.ascontiguousarray(dz_dy.reshape(-1, 3), dtype=np.float64))
+        pixel_weights = to_device(dz_dy.reshape(-1, 3), torch.float64)
         active = np.zeros(problem.layout.active)
         for k in range(passes):
             _, values = self._rays(problem, fields, sensor_obj, per_pass, derive_seed(seed, "camera", k))
-            rays = torch.from_numpy(values).double().reshape(width * height, per_pass, -1, 3)
-            active += torch.einsum("xsac,xc->a", rays, pixel_weights).numpy() / per_pass
+            rays = values.double().reshape(width * height, per_pass, -1, 3)
+            active += to_host(torch.einsum("xsac,xc->a", rays, pixel_weights)) / per_pass
         out = np.zeros(problem.parameters.n)
         out[list(problem.layout.scalars)] = active / passes
         return out
@@ -125,7 +125,7 @@ class CameraHitMethod(GradientMethod):
         return samples, sampler, emitter, on_emitter, on_surface
 
     def _rays(self, problem: Problem, fields: Fields, sensor: mi.Sensor, spp: int,
-              seed: int) -> tuple[CameraSamples, np.ndarray]:
+              seed: int) -> tuple[CameraSamples, torch.Tensor]:
         """The per-ray derivatives ``dI`` of one pass: ``(K, A, 3)``, ``K = W·H·spp`` in Mitsuba's
         pixel-major order."""
         params, layout = problem.parameters, problem.layout
@@ -139,7 +139,7 @@ class CameraHitMethod(GradientMethod):
                 d_emitted = torch.stack([rgb(g[0]) for g in params.forward([emitted], layout.scalars)], 1)
             d_reflected = d_reflected + d_emitted
         scale = rgb(samples.weight * chain.beta)[:, None, :]                                   # (K, 1, 3)
-        return samples, (scale * d_reflected).numpy()
+        return samples, scale * d_reflected
 
 
 class NdrfLhs(CameraHitMethod):
@@ -223,7 +223,7 @@ class OneBounce(CameraHitMethod):
         if not sensor_obj.film().rfilter().is_box_filter():
             raise ValueError(f"{self.name} contracts dz/dy per ray for a texture job: it needs a box pixel filter")
         passes, per_pass = passes_for(width * height, spp, RAYS_PER_PASS)
-        pixel = torch.from_numpy(np.ascontiguousarray(dz_dy.reshape(-1, 3), dtype=np.float32))
+        pixel = to_device(dz_dy.reshape(-1, 3), torch.float32)
         total = np.zeros(params.n)
         for k in range(passes):
             total += self._adjoint_pass(problem, fields, sensor_obj, pixel, per_pass, passes,

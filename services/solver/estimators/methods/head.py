@@ -40,7 +40,7 @@ from services.solver.sampling.camera import CameraSamples, develop, sample_camer
 from services.solver.sampling.incident import IncidentGeometry, evaluate_attached, evaluate_incident, sample_geometry
 from services.solver.sampling.passes import passes_for
 from services.solver.sampling.surface import queryable
-from services.solver.sampling.tensors import field_query, mask, rgb
+from services.solver.sampling.tensors import color, field_query, mask, rgb, to_device, to_host
 from services.solver.scene.params import FORWARD_GROUP  # scalars per forward-mode traversal of one graph
 from services.solver.seeds import derive_seed
 
@@ -64,11 +64,6 @@ class HeadPass:
     l_first: torch.Tensor
     l_second: torch.Tensor
     basis: torch.Tensor
-
-
-def color(t: torch.Tensor) -> mi.Color3f:
-    """``(K, 3)`` torch -> ``mi.Color3f`` with ``K`` lanes."""
-    return mi.Color3f(np.ascontiguousarray(t.detach().numpy().T, dtype=np.float32))
 
 
 class NdrfHead(GradientMethod):
@@ -141,7 +136,7 @@ class NdrfHead(GradientMethod):
         assert head is not None
         params = problem.parameters
         passes, per_pass = passes_for(width * height, spp, RAYS_PER_PASS)
-        pixel = torch.from_numpy(np.ascontiguousarray(dz_dy.reshape(-1, 3), dtype=np.float32))
+        pixel = to_device(dz_dy.reshape(-1, 3), torch.float32)
         total = np.zeros(params.n)
         v = torch.zeros(head.rank, dtype=torch.float64)
         for k in range(passes):
@@ -154,7 +149,7 @@ class NdrfHead(GradientMethod):
                 total += params.gradient_vector()
             v += torch.einsum("kc,krc->r", (weight * rgb(t1)).double(), p.basis.double())
         with torch.no_grad():
-            total += (head.coefficients.double().T @ v).numpy()
+            total += to_host(head.coefficients.double().T @ v)
         return total
 
     def images(self, problem, fields, *, spp, seed, sensor=0):
@@ -176,8 +171,7 @@ class NdrfHead(GradientMethod):
             d_exact = torch.stack([rgb(row[0]) for row in rows], 1)                          # (K, P, 3)
             with torch.no_grad():
                 d_head = rgb(t1)[:, None, :] * head.combine(p.basis, head.coefficients)      # (K, P, 3)
-            values = (p.scale[:, None, :] * (d_exact + d_head)).numpy()
-            out += develop(sensor_obj, p.samples, values)
+            out += to_host(develop(sensor_obj, p.samples, p.scale[:, None, :] * (d_exact + d_head)))
         return (out / passes).astype(np.float32)
 
 
