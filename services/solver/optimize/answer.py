@@ -168,7 +168,7 @@ class NewtonAnswer:
         def fit(a: int, b: int, noise: np.ndarray | None = None):
             return newton_estimate(p[a:b], g[a:b], w[a:b], h, h_inv, noise)
 
-        testable = 2 * max(MIN_WINDOW, 2 * p.shape[1] + 2)   # halves long enough to measure the noise in
+        testable = 2 * (p.shape[1] + 2)   # halves long enough to measure the noise in (2 degrees of freedom)
         length = k
         while length >= MIN_WINDOW:
             start, half = k - length, k - length + length // 2
