@@ -244,7 +244,7 @@ class MeanAnswer:
         """The weighted mean of batches ``a..b-1``, its per-scalar variance and the variance of a
         batch mean of unit weight (measured from the batches' spread unless given, ``noise``)."""
         total = float(sum(self.totals[a:b]))
-        estimate = sum(self.sums[a:b]) / total
+        estimate = np.asarray(sum(self.sums[a:b]) / total, np.float64)
         if noise is None:
             n = b - a
             noise = np.asarray(sum(t * (s / t - estimate) ** 2 for s, t in zip(self.sums[a:b], self.totals[a:b])))

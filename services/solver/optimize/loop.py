@@ -42,7 +42,7 @@ from services.solver.optimize.images import render_views
 from services.solver.optimize.recipe import Decision, Recipe
 from services.solver.optimize.regularize import regularized
 from services.solver.optimize.report import RunAborted, RunOutcome, RunReporter, StopReason
-from services.solver.optimize.resolve import resolve
+from services.solver.optimize.resolve import resolve, undetermined_texels
 from services.solver.optimize.setup import Prepared, prepare
 from services.solver.optimize.state import RunState, describe, initial_state, restore, save
 from services.solver.optimize.textures import TextureReport, record_fields
@@ -89,14 +89,18 @@ class Clock:
         return time.perf_counter() - self.start
 
 
-def final_textures(textures: TextureReport, state: RunState) -> dict[str, np.ndarray]:
+def final_textures(textures: TextureReport, state: RunState, undetermined: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """A texture job's answer, by name: each texture's estimate (``<key>``), its standard error
-    per texel (``<key>.standard_error``) and the last iterate (``<key>.last``)."""
+    per texel (``<key>.standard_error``: infinite where ``undetermined[key]`` ``(H, W)`` says no
+    pixel pins the texel down) and the last iterate (``<key>.last``)."""
     answer = state.answer.estimate()
     out = textures.images(answer.values)
     out |= {f"{key}.last": image for key, image in textures.images(state.parameters).items()}
     if answer.standard_error is not None:
-        out |= {f"{key}.standard_error": image for key, image in textures.images(answer.standard_error).items()}
+        for key, image in textures.images(answer.standard_error).items():
+            if key in undetermined:
+                image = np.where(undetermined[key][..., None], np.inf, image).astype(np.float32)
+            out[f"{key}.standard_error"] = image
     return out
 
 
@@ -162,7 +166,8 @@ class InverseRenderingRun:
                 if state.next_iteration % self.spec.checkpoint_every == 0 or self._stopped(state):
                     self.reporter.checkpoint(save(self.spec, state, built, recipe.method), state.next_iteration)
             if prepared.textures:
-                self.reporter.textures(None, final_textures(prepared.textures, state))
+                undetermined = undetermined_texels(recipe, measures, dict(prepared.problem.parameters.textures))
+                self.reporter.textures(None, final_textures(prepared.textures, state, undetermined))
             if isinstance(self.reporter, BackgroundReporter):
                 self.reporter.flush()  # success only once every report is written
             return self._outcome(Outcome.SUCCEEDED, state, started)

@@ -189,6 +189,23 @@ def _fields(spec: JobSpec, method: str, planned_for: str | None, effects: Effect
     return radiance, differential
 
 
+def undetermined_texels(recipe: Recipe, measures: Measures,
+                        shapes: dict[str, tuple[int, ...]]) -> dict[str, np.ndarray]:
+    """Per texture (``shapes``: key -> ``(H, W, C)``), ``(H, W)`` true where the texel's block at
+    the recipe's resolution is seen by less than one pixel: the images do not determine it (its
+    standard error is infinite)."""
+    out = {}
+    for key, block in recipe.texture_blocks:
+        counts = measures.footprint(key, shapes[key])
+        height, width = counts.shape
+        rows, columns = -(-height // block), -(-width // block)
+        padded = np.zeros((rows * block, columns * block))
+        padded[:height, :width] = counts
+        sums = padded.reshape(rows, block, columns, block).sum((1, 3))
+        out[key] = np.repeat(np.repeat(sums < 1.0, block, axis=0), block, axis=1)[:height, :width]
+    return out
+
+
 def _texture_blocks(spec: JobSpec, parameters: Parameters, measures: Measures, decide) -> tuple[tuple[str, int], ...]:
     """Each texture's block side: 1 (its own resolution), or, with ``textures.resolution`` "auto"
     and fewer than :data:`PIXELS_PER_TEXEL` pixels per texel in its footprint, the smallest power

@@ -20,7 +20,12 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from services.solver.jit_types import Float
+from services.solver.sampling.camera import WAVELENGTH_SAMPLE
 from services.solver.scene.load import LoadedScene
+
+#: The time of the rays (a static scene).
+TIME: Float = 0.0
 
 
 def texel_footprint(scene: LoadedScene, key: str, shape: tuple[int, ...], sensors: list[int]) -> np.ndarray:
@@ -39,12 +44,12 @@ def texel_footprint(scene: LoadedScene, key: str, shape: tuple[int, ...], sensor
             w, h = scene.resolution(index)
             pixel = dr.arange(mi.UInt32, w * h)
             position = mi.Point2f((mi.Float(pixel % w) + 0.5) / w, (mi.Float(pixel // w) + 0.5) / h)
-            ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5, 0.5))
+            ray, _ = sensor.sample_ray(TIME, WAVELENGTH_SAMPLE, position, mi.Point2f(0.5, 0.5))
             si = scene.scene.ray_intersect(ray)
-            seen = si.is_valid() & dr.zeros(mi.Bool, w * h)
+            hit = dr.zeros(mi.Bool, w * h)
             for s in shapes:
-                seen |= si.shape == mi.ShapePtr(s)
-            seen = np.array(seen & si.is_valid())
+                hit |= si.shape == mi.ShapePtr(s)
+            seen = np.array(hit & si.is_valid(), dtype=bool)
             u, v = np.array(si.uv.x, np.float64)[seen], np.array(si.uv.y, np.float64)[seen]
             _splat(counts, v * height - 0.5, u * width - 0.5)
     return counts
