@@ -97,6 +97,7 @@ def test_a_job_canceled_as_its_process_starts_is_canceled_not_crashed(tmp_path):
     start-up): it dies of that signal, which is the stop that was asked for, not a crash."""
     import threading
 
+    from harness.cluster import small_job
     from schemas.job import JobSpec
     from schemas.outcomes import Outcome
     from schemas.records import JobRecord, JobStatus
@@ -104,7 +105,6 @@ def test_a_job_canceled_as_its_process_starts_is_canceled_not_crashed(tmp_path):
     from services.jobs.state import JobStates, now_iso
     from services.settings import Limits
     from services.store.local import FolderStore
-    from tests.support.service import small_job
 
     states = JobStates(FolderStore(tmp_path / "store"))
     job_id, now = "0" * 19 + "1", now_iso()
