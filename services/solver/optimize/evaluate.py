@@ -30,8 +30,11 @@ class GradientEvaluation:
     summary: dict
 
 
-def evaluate_gradient(spec: JobSpec, method_name: str, *, spp: int | None = None, train_steps: int | None = None,
+def evaluate_gradient(spec: JobSpec, method_name: str, *, spp: int, train_steps: int | None = None,
                       scene_file: Path | None = None) -> GradientEvaluation:
+    """``dI/dp`` of every sensor with a target at ``spp`` samples per pixel (the caller's choice: the
+    job's ``render.gradient_spp`` serves the loop's steps, not one image), after ``train_steps``
+    training steps of the method's fields (default: the job's ``training.warmup_steps``)."""
     prepared = prepare(spec, scene_file=scene_file, method=method_name)
     problem = prepared.problem
     if problem.parameters.has_textures:
@@ -39,7 +42,6 @@ def evaluate_gradient(spec: JobSpec, method_name: str, *, spp: int | None = None
                                        f"job: run the job instead (ndrf run); its images iterations write "
                                        f"textures/<key>.dz_dp.npy, the gradient as a texture")
     method = make_method(method_name, problem.plan, prepared.depth)
-    spp = spp or spec.render.gradient_spp
     steps = spec.training.warmup_steps if train_steps is None else train_steps
 
     start = time.perf_counter()
