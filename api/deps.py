@@ -17,7 +17,6 @@ from fastapi import Depends, Request
 from api import tokens
 from api.problems import ProblemError
 from services.jobs.service import ANONYMOUS, Caller
-from services.jobs.state import UnknownJob
 from services.runtime import Runtime
 from services.settings import Settings, key_id
 
@@ -106,25 +105,3 @@ def require_admin(request: Request, settings: SettingsDep) -> Caller:
 
 CallerDep = Annotated[Caller, Depends(require_caller)]
 ReaderDep = Annotated[Caller, Depends(require_reader)]
-
-
-# --------------------------------------------------------------------- lookups
-
-def not_found(job_id: str) -> ProblemError:
-    return ProblemError(404, "Not found", f"no job {job_id!r}", slug="unknown-job")
-
-
-def files_or_404(runtime: Runtime, job_id: str, caller: Caller):
-    """The job's files, if the caller may see the job (404 otherwise: ids of others' jobs are not
-    confirmed)."""
-    try:
-        return runtime.service.files(job_id, caller)
-    except UnknownJob:
-        raise not_found(job_id) from None
-
-
-def record_or_404(runtime: Runtime, job_id: str, caller: Caller):
-    try:
-        return runtime.service.record(job_id, caller)
-    except UnknownJob:
-        raise not_found(job_id) from None

@@ -18,6 +18,8 @@ from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from schemas.validation import field_path
+from services.experiments.state import ExperimentConflict, UnknownExperiment
+from services.jobs.state import Conflict, UnknownJob
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +53,21 @@ class ProblemError(Exception):
         super().__init__(detail or title)
         self.status, self.title, self.detail, self.slug = status, title, detail, slug
         self.errors, self.headers = errors, headers
+
+
+def conflict(slug: str) -> dict:
+    """A route's ``409`` (``responses={409: conflict("job-finished")}``): the conflict a service
+    raises in that route (:class:`~services.jobs.state.Conflict`,
+    :class:`~services.experiments.state.ExperimentConflict`) is answered with the problem type
+    ``/problems/{slug}``, which OpenAPI lists as the response's ``x-problem-type``."""
+    return {"model": ProblemDetails, "x-problem-type": f"/problems/{slug}"}
+
+
+def _conflict_slug(request: Request) -> str | None:
+    """The slug the matched route declares for its ``409`` (:func:`conflict`), if any."""
+    declared = getattr(request.scope.get("route"), "responses", {}).get(409, {})
+    problem_type = declared.get("x-problem-type")
+    return problem_type.removeprefix("/problems/") if problem_type else None
 
 
 def problem_response(request: Request, status: int, title: str, detail: str | None = None, *,
@@ -87,6 +104,23 @@ def _cap(request: Request) -> int:
 
 
 def install(app: FastAPI) -> None:
+    """The handlers turning errors into problem documents: a route raises the service's own
+    exceptions (an unknown job or experiment is a ``404``, a conflict a ``409``) instead of
+    catching them itself."""
+    @app.exception_handler(UnknownJob)
+    async def _unknown_job(request: Request, exc: UnknownJob):
+        return problem_response(request, 404, "Not found", f"no job {exc.args[0]!r}", slug="unknown-job")
+
+    @app.exception_handler(UnknownExperiment)
+    async def _unknown_experiment(request: Request, exc: UnknownExperiment):
+        return problem_response(request, 404, "Not found", f"no experiment {exc.args[0]!r}",
+                                slug="unknown-experiment")
+
+    @app.exception_handler(Conflict)
+    @app.exception_handler(ExperimentConflict)
+    async def _conflict(request: Request, exc: Exception):
+        return problem_response(request, 409, "Conflict", str(exc), slug=_conflict_slug(request))
+
     @app.exception_handler(ProblemError)
     async def _problem(request: Request, exc: ProblemError):
         return problem_response(request, exc.status, exc.title, exc.detail, slug=exc.slug, errors=exc.errors,

@@ -1,5 +1,5 @@
 """Chaos benchmark: N jobs on W workers in Redis mode while things break (the harness:
-:mod:`tests.support.chaos`, which says what breaks and what is reported).
+:mod:`harness.chaos`, which says what breaks and what is reported).
 
     python -m bench.chaos                      # 10 jobs, 3 workers, a SIGKILL every 60 s, one Redis restart,
                                                # one full disk
@@ -16,7 +16,7 @@ import logging
 import shutil
 from pathlib import Path
 
-from tests.support.chaos import ChaosConfig, markdown, run
+from harness.chaos import ChaosConfig, markdown, run
 
 log = logging.getLogger("bench.chaos")
 

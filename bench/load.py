@@ -17,7 +17,7 @@ Phases, each against the same API while two long jobs train:
 CPU placement (2 cores here): the API on core 0 (``taskset -c 0``), this load generator on core 1,
 the workers (and their jobs) on both cores at ``nice 19``, so the training soaks up idle time
 without taking it from the API or the clients (the nice given to their sessions' autogroups too:
-:class:`tests.support.cluster.Process`). ``--api-processes N`` serves with
+:class:`harness.cluster.Process`). ``--api-processes N`` serves with
 ``ndrf serve --workers N`` (uvicorn processes on one port; the store and Redis are shared).
 """
 
@@ -37,7 +37,7 @@ from pathlib import Path
 
 import httpx
 
-from tests.support.cluster import Redis, small_job, start_api, start_worker, wait_until
+from harness.cluster import Redis, small_job, start_api, start_worker, wait_until
 
 log = logging.getLogger("bench.load")
 
@@ -236,13 +236,13 @@ def run(args) -> dict:
         processes += [start_worker(folder, env, f"trainer{i}", nice=19) for i in range(2)]
         training = []
         for i in range(2):
-            status, body = api.request("POST", "/v1/jobs", small_job(iterations=2000, seed=i + 1, images_every=50,
+            status, _, body = api.json("POST", "/v1/jobs", small_job(iterations=2000, seed=i + 1, images_every=50,
                                                                      name="load training"))
             assert status == 202, body
             training.append(body["id"])
 
         def both_training() -> bool:
-            return all((api.request("GET", f"/v1/jobs/{j}")[1] or {}).get("iteration") is not None for j in training)
+            return all((api.json("GET", f"/v1/jobs/{j}")[2] or {}).get("iteration") is not None for j in training)
 
         wait_until(both_training, 300, 1.0, what="both jobs training")
         if args.generator_cpus and hasattr(os, "sched_setaffinity"):
@@ -250,7 +250,7 @@ def run(args) -> dict:
         started = time.time()
 
         def iterations() -> list:
-            return [(api.request("GET", f"/v1/jobs/{j}")[1] or {}).get("iteration") for j in training]
+            return [(api.json("GET", f"/v1/jobs/{j}")[2] or {}).get("iteration") for j in training]
 
         before = iterations()
         report = asyncio.run(scenario(api.base, training, folder / "store", redis.url, args))

@@ -1,7 +1,7 @@
 """``python -m bench.store_clients``: which S3 client the store uses, measured.
 
 Per-operation latency (median and 90th percentile of ``--reps`` calls) of obstore, boto3 and
-s3fs against the same moto server on loopback (``tests/support/s3server.py``, a child process), for the
+s3fs against the same moto server on loopback (``harness/s3server.py``, a child process), for the
 operations the store makes: PUT 1 KiB (a record), PUT 1 MiB (an image stack), conditional create
 (``If-None-Match: *``), GET 1 KiB, GET 1 MiB, HEAD, LIST of 200 keys. Also the import time of each
 client in a fresh interpreter and the installed size of its dependency closure. A client that is
@@ -26,7 +26,7 @@ MIB = b"m" * (1 << 20)
 
 
 def _server() -> tuple[subprocess.Popen, str]:
-    proc = subprocess.Popen([sys.executable, "-m", "tests.support.s3server", "--bucket", "bench"], cwd=ROOT,
+    proc = subprocess.Popen([sys.executable, "-m", "harness.s3server", "--bucket", "bench"], cwd=ROOT,
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     assert proc.stdout is not None
     line = proc.stdout.readline()
@@ -146,7 +146,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "store_clients.json")
     args = parser.parse_args(argv)
     proc, endpoint = _server()
-    results: dict = {"endpoint": "moto (tests/support/s3server.py) on loopback", "reps": args.reps, "clients": {}}
+    results: dict = {"endpoint": "moto (harness/s3server.py) on loopback", "reps": args.reps, "clients": {}}
     try:
         for name, (factory, dist) in CLIENTS.items():
             try:

@@ -12,7 +12,7 @@ Reported per iteration: wall seconds (median and mean over ``--iterations``, che
 included in the mean), the same work with a store that discards everything (PNG encoding and
 record handling alone: the store's own share is the difference), bytes written (what crosses the
 network to a bucket; the checkpoint is overwritten, so less is kept) and, for S3, HTTP requests.
-The S3 store talks to moto on loopback (``tests/support/s3server.py``) unless ``--endpoint`` names a real
+The S3 store talks to moto on loopback (``harness/s3server.py``) unless ``--endpoint`` names a real
 server (credentials from the AWS environment variables; ``--bucket``): on a network,
 add requests x round-trip time.
 """
@@ -224,7 +224,7 @@ def main(argv: list[str] | None = None) -> None:
         if args.endpoint:
             endpoint, extra = args.endpoint, {}
         else:
-            proc = subprocess.Popen([sys.executable, "-m", "tests.support.s3server", "--bucket", args.bucket], cwd=ROOT,
+            proc = subprocess.Popen([sys.executable, "-m", "harness.s3server", "--bucket", args.bucket], cwd=ROOT,
                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
             assert proc.stdout is not None
             line = proc.stdout.readline()
@@ -236,7 +236,7 @@ def main(argv: list[str] | None = None) -> None:
         _count_requests(counter)
         store = S3Store(f"s3://{args.bucket}/bench-{uuid.uuid4().hex[:8]}", endpoint=endpoint, **extra)
         results["s3"] = run_store(store, args, counter)
-        results["s3"]["endpoint"] = args.endpoint or "moto (tests/support/s3server.py) on loopback"
+        results["s3"]["endpoint"] = args.endpoint or "moto (harness/s3server.py) on loopback"
     finally:
         if proc is not None and proc.stdin:
             proc.stdin.close()

@@ -66,7 +66,7 @@ def timed(api, path: str, body: dict) -> tuple[float, dict]:
 
 
 def measure(scene: str, views: int, one_off: int, training: dict) -> dict:
-    from tests.support.service import start_api
+    from harness.cluster import start_api
 
     job = json.loads((ROOT / "examples" / f"{scene}.json").read_text())
     job.update(iterations=3, images_every=3, training={**job.get("training", {}), **training})

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.support.service import Process, RedisServer, open_test_store, start_api
+from harness.cluster import Process, Redis, start_api
+from tests.support.service import open_test_store
 
 #: Tier folder -> what its tests run against (the marker and its description).
 TIERS = {
@@ -62,7 +63,7 @@ def browser():
 @pytest.fixture(scope="session")
 def s3_server():
     """moto's S3 server on loopback, in a child process, for the whole session (tests/support/s3server.py)."""
-    from tests.support.s3server import S3Server
+    from harness.s3server import S3Server
 
     server = S3Server().start()
     yield server
@@ -74,8 +75,8 @@ def s3_store(s3_server):
     """An S3Store on a fresh prefix of the session's bucket."""
     import uuid
 
+    from harness.s3server import ACCESS_KEY, REGION, SECRET_KEY
     from services.store.s3 import S3Store
-    from tests.support.s3server import ACCESS_KEY, REGION, SECRET_KEY
 
     store = S3Store(f"s3://ndrf/t-{uuid.uuid4().hex[:12]}", endpoint=s3_server.endpoint, access_key_id=ACCESS_KEY,
                     secret_access_key=SECRET_KEY, region=REGION)
@@ -87,9 +88,9 @@ def s3_store(s3_server):
 
 @pytest.fixture()
 def redis_server():
-    server = RedisServer().start()
+    server = Redis().start()
     yield server
-    server.stop()
+    server.kill()
 
 
 @pytest.fixture(params=["folder", "s3"])

@@ -18,7 +18,7 @@ from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, RedirectResponse, Response, StreamingResponse
 
 from api.bodies import GuardedRoute
-from api.deps import ReaderDep, RuntimeDep, files_or_404
+from api.deps import ReaderDep, RuntimeDep
 from api.problems import ProblemDetails, ProblemError
 from schemas.records import IterationRecord
 from services.store.job import JobFiles
@@ -65,7 +65,7 @@ def send(files: JobFiles, key: str, media_type: str, what: str, filename: str | 
 def iterations(job_id: str, runtime: RuntimeDep, response: Response, caller: ReaderDep,
                after: Annotated[int, Query(ge=-1, description="Only iterations with a larger index.")] = -1):
     """Loss, parameters, dz/dp, seconds per phase and residual norms of every completed iteration."""
-    files = files_or_404(runtime, job_id, caller)
+    files = runtime.service.files(job_id, caller)
     events, _ = files.store.read_events(files.prefix)    # before the records: each record precedes its event
     response.headers["X-Last-Event-ID"] = str(events[-1].get("seq", 0) if events else 0)
     return [files.iteration_record(k) for k in files.iterations() if k > after]
@@ -74,7 +74,7 @@ def iterations(job_id: str, runtime: RuntimeDep, response: Response, caller: Rea
 @router.get("/iterations/{k}/render.png", summary="Candidate render", responses={200: {"content": {PNG: {}}}})
 def render_png(job_id: str, k: Iteration, runtime: RuntimeDep, caller: ReaderDep,
                sensor: Annotated[int, Query(ge=0, le=64, description="Sensor index.")] = 0):
-    files = files_or_404(runtime, job_id, caller)
+    files = runtime.service.files(job_id, caller)
     key = files.iteration_key(k, "render.png" if sensor == 0 else f"render-{sensor}.png")
     if not files.store.exists(key):
         raise _missing(f"render of iteration {k}")
@@ -94,7 +94,7 @@ def gradient(job_id: str, k: Iteration, runtime: RuntimeDep, caller: ReaderDep,
         raise ProblemError(422, "Invalid request", "name must be '<scalar index>.png' or '<scalar index>.npy'",
                            slug="invalid-request", errors=[("name", "expected <p>.png or <p>.npy")])
     p, kind = int(match.group(1)), match.group(2)
-    files = files_or_404(runtime, job_id, caller)
+    files = runtime.service.files(job_id, caller)
     if kind == "png":
         key = files.iteration_key(k, f"gradient-{p}.png")
         if not files.store.exists(key):
@@ -139,7 +139,7 @@ def _stack_slice(files: JobFiles, key: str, p: int) -> np.ndarray | int | None:
 @router.get("/iterations/{k}/gradients.npy", summary="All gradient images of an iteration",
             responses={200: {"content": {NPY: {}}}})
 def gradients_stack(job_id: str, k: Iteration, runtime: RuntimeDep, caller: ReaderDep):
-    files = files_or_404(runtime, job_id, caller)
+    files = runtime.service.files(job_id, caller)
     key = files.iteration_key(k, "gradients.npy")
     if not files.store.exists(key):
         raise _missing(f"gradient data of iteration {k}")
@@ -172,14 +172,14 @@ def _texture(files: JobFiles, k: int | None, name: str):
             responses={200: {"content": {PNG: {}, NPY: {}, EXR: {}}}})
 def final_texture(job_id: str, runtime: RuntimeDep, caller: ReaderDep, name: TextureName):
     """A texture parameter's recovered value (written at the end; summary.json names the files)."""
-    return _texture(files_or_404(runtime, job_id, caller), None, name)
+    return _texture(runtime.service.files(job_id, caller), None, name)
 
 
 @router.get("/iterations/{k}/textures/{name}", summary="A texture at an iteration",
             responses={200: {"content": {PNG: {}, NPY: {}, EXR: {}}}})
 def iteration_texture(job_id: str, k: Iteration, runtime: RuntimeDep, caller: ReaderDep, name: TextureName):
     """A texture parameter at iteration ``k`` and its gradient (written with the iteration's images)."""
-    return _texture(files_or_404(runtime, job_id, caller), k, name)
+    return _texture(runtime.service.files(job_id, caller), k, name)
 
 
 Sensor = Annotated[int, PathParam(ge=0, le=64, description="Sensor index.")]
@@ -196,20 +196,20 @@ def _target(files: JobFiles, sensor: int, ext: str, media_type: str):
 @router.get("/targets/{sensor}.png", summary="Target image", responses={200: {"content": {PNG: {}}}})
 def target_png(job_id: str, runtime: RuntimeDep, caller: ReaderDep, sensor: Sensor):
     """The target of a sensor as an sRGB preview."""
-    return _target(files_or_404(runtime, job_id, caller), sensor, "png", PNG)
+    return _target(runtime.service.files(job_id, caller), sensor, "png", PNG)
 
 
 @router.get("/targets/{sensor}.exr", summary="Target image as OpenEXR", responses={200: {"content": {EXR: {}}}})
 def target_exr(job_id: str, runtime: RuntimeDep, caller: ReaderDep, sensor: Sensor):
     """The target of a sensor, linear RGB as fitted (OpenEXR, 32-bit float, unclamped)."""
-    return _target(files_or_404(runtime, job_id, caller), sensor, "exr", EXR)
+    return _target(runtime.service.files(job_id, caller), sensor, "exr", EXR)
 
 
 @router.get("/checkpoints/latest", summary="Latest checkpoint",
             responses={200: {"content": {"application/octet-stream": {}}}})
 def latest_checkpoint(job_id: str, runtime: RuntimeDep, caller: ReaderDep):
     """The torch checkpoint (fields, optimizers, parameters, Adam state, RNG, next iteration)."""
-    files = files_or_404(runtime, job_id, caller)
+    files = runtime.service.files(job_id, caller)
     key = files.key(JobFiles.CHECKPOINT)
     if not files.store.exists(key):
         raise _missing("a checkpoint")

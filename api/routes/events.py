@@ -22,7 +22,7 @@ from fastapi import APIRouter, Header, Query, Request
 from fastapi.responses import StreamingResponse
 
 from api.bodies import GuardedRoute
-from api.deps import ReaderDep, RuntimeDep, record_or_404
+from api.deps import ReaderDep, RuntimeDep
 from api.problems import ProblemDetails
 from api.streams import END, StreamHub, StreamSlot, counted_owner, finishes
 
@@ -42,7 +42,7 @@ async def job_events(job_id: str, request: Request, runtime: RuntimeDep, caller:
                      last_event_id: Annotated[str | None, Header(alias="Last-Event-ID", pattern=r"^\d{1,12}$")] = None,
                      after: Annotated[int | None, Query(ge=0, description="Replay events after this id.")] = None):
     hub: StreamHub = request.app.state.streams
-    record = await hub.blocking(record_or_404, runtime, job_id, caller)
+    record = await hub.blocking(runtime.service.record, job_id, caller)
     start = int(last_event_id) if last_event_id is not None else (after or 0)
     slot = await StreamSlot.take(runtime, counted_owner(caller, record.owner))
 

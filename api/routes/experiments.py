@@ -18,7 +18,7 @@ from fastapi.responses import PlainTextResponse, StreamingResponse
 from api import tokens
 from api.bodies import GuardedRoute
 from api.deps import RuntimeDep, SettingsDep, may_mint_token, reader_of, require_caller
-from api.problems import ProblemDetails, ProblemError
+from api.problems import ProblemDetails, ProblemError, conflict
 from api.streams import StreamHub, StreamSlot, counted_owner
 from schemas.experiments import (
     Curves,
@@ -32,7 +32,6 @@ from schemas.experiments import (
 )
 from schemas.job import JobSpec
 from services.experiments.expand import InvalidExperiment
-from services.experiments.state import ExperimentConflict, UnknownExperiment
 from services.jobs.preflight import preflight
 from services.jobs.service import Caller
 from services.jobs.state import UnknownJob
@@ -56,20 +55,9 @@ def require_experiment_reader(request: Request, settings: SettingsDep, exp_id: s
 ReaderDep = Annotated[Caller, Depends(require_experiment_reader)]
 
 
-def _not_found(exp_id: str) -> ProblemError:
-    return ProblemError(404, "Not found", f"no experiment {exp_id!r}", slug="unknown-experiment")
-
-
 def _invalid(exc: InvalidExperiment) -> ProblemError:
     return ProblemError(422, "Invalid experiment", str(exc), slug="invalid-experiment",
                         errors=[(exc.field, exc.message)])
-
-
-def _record(runtime: Runtime, exp_id: str, caller: Caller) -> ExperimentRecord:
-    try:
-        return runtime.experiments.record(exp_id, caller)
-    except UnknownExperiment:
-        raise _not_found(exp_id) from None
 
 
 def _token(settings: Settings, exp_id: str) -> str | None:
@@ -138,7 +126,7 @@ def list_experiments(runtime: RuntimeDep, settings: SettingsDep, caller: CallerD
 def get_experiment(exp_id: str, request: Request, runtime: RuntimeDep, settings: SettingsDep, caller: ReaderDep):
     """Status, counts by status, the best run by the objective so far, and the mean and spread
     over seeds of every configuration. A request with ``?token=`` gets no fresh read token."""
-    record = _record(runtime, exp_id, caller)
+    record = runtime.experiments.record(exp_id, caller)
     token = _token(settings, exp_id) if may_mint_token(request) else None
     return runtime.experiments.public(record, read_token=token)
 
@@ -148,7 +136,7 @@ def get_experiment(exp_id: str, request: Request, runtime: RuntimeDep, settings:
 def get_runs(exp_id: str, runtime: RuntimeDep, caller: ReaderDep):
     """One row per run: varied values, status, final loss, final parameter error (synthetic
     targets), compute and wall seconds, time to reach the experiment's target_error, iterations."""
-    return runtime.experiments.rows(_record(runtime, exp_id, caller))
+    return runtime.experiments.rows(runtime.experiments.record(exp_id, caller))
 
 
 @router.get("/{exp_id}/results.csv", response_class=PlainTextResponse, summary="The runs as CSV",
@@ -157,7 +145,7 @@ def get_results_csv(exp_id: str, runtime: RuntimeDep, caller: ReaderDep):
     """The rows of ``/runs`` as CSV (one column per varied field)."""
     from services.experiments.results import results_csv
 
-    text = results_csv(runtime.experiments.rows(_record(runtime, exp_id, caller)))
+    text = results_csv(runtime.experiments.rows(runtime.experiments.record(exp_id, caller)))
     return PlainTextResponse(text, media_type="text/csv",
                              headers={"Content-Disposition": f'attachment; filename="{exp_id}-results.csv"'})
 
@@ -167,32 +155,26 @@ def get_results_csv(exp_id: str, runtime: RuntimeDep, caller: ReaderDep):
 def get_curves(exp_id: str, runtime: RuntimeDep, caller: ReaderDep):
     """Parameter error and loss against compute seconds, per run and per configuration (mean over
     its seeds, with the spread): for a sweep over ``method``, every method's curve on this scene."""
-    return runtime.experiments.curves(_record(runtime, exp_id, caller))
+    return runtime.experiments.curves(runtime.experiments.record(exp_id, caller))
 
 
 @router.post("/{exp_id}/cancel", status_code=202, response_model=ExperimentPublic,
-             responses={404: {"model": ProblemDetails}, 409: {"model": ProblemDetails}}, summary="Cancel")
+             responses={404: {"model": ProblemDetails}, 409: conflict("experiment-finished")}, summary="Cancel")
 def cancel_experiment(exp_id: str, runtime: RuntimeDep, settings: SettingsDep, caller: CallerDep):
     """Cancel pending runs and the jobs of queued and running runs (they keep their artifacts).
     A finished experiment is a ``409``."""
-    _record(runtime, exp_id, caller)
-    try:
-        record = runtime.experiments.cancel(exp_id, caller)
-    except ExperimentConflict as exc:
-        raise ProblemError(409, "Conflict", str(exc), slug="experiment-finished") from None
+    runtime.experiments.record(exp_id, caller)
+    record = runtime.experiments.cancel(exp_id, caller)
     return runtime.experiments.public(record, read_token=_token(settings, exp_id), detail=False)
 
 
 @router.post("/{exp_id}/retry", status_code=202, response_model=ExperimentAccepted,
-             responses={404: {"model": ProblemDetails}, 409: {"model": ProblemDetails}}, summary="Retry")
+             responses={404: {"model": ProblemDetails}, 409: conflict("nothing-to-retry")}, summary="Retry")
 def retry_experiment(exp_id: str, response: Response, runtime: RuntimeDep, caller: CallerDep):
     """Re-queue the failed and canceled runs (each gets a new job); succeeded runs are not run
     again. ``409`` when there is nothing to retry."""
-    _record(runtime, exp_id, caller)
-    try:
-        record, again = runtime.experiments.retry(exp_id, caller)
-    except ExperimentConflict as exc:
-        raise ProblemError(409, "Conflict", str(exc), slug="nothing-to-retry") from None
+    runtime.experiments.record(exp_id, caller)
+    record, again = runtime.experiments.retry(exp_id, caller)
     return _accepted(response, record, again)
 
 
@@ -203,7 +185,7 @@ async def append_runs(exp_id: str, more: ExperimentAppend, response: Response, r
     """More values of the grid fields, more seeds or more random draws: the runs this adds are
     checked and queued; runs that exist are kept (finished ones are not run again). ``added`` is
     empty when nothing was new."""
-    _record(runtime, exp_id, caller)
+    runtime.experiments.record(exp_id, caller)
 
     def append():
         return runtime.experiments.append(exp_id, more, caller, preflight=preflight)
@@ -227,7 +209,7 @@ async def experiment_events(exp_id: str, request: Request, runtime: RuntimeDep, 
     status), ``retry``, ``appended``, ``canceled``. Every event's SSE id is its sequence number;
     ``Last-Event-ID`` replays what was missed. The stream ends when the experiment finishes."""
     hub: StreamHub = request.app.state.streams
-    record = await hub.blocking(_record, runtime, exp_id, caller)
+    record = await hub.blocking(runtime.experiments.record, exp_id, caller)
     states = runtime.experiments.states
     start = int(last_event_id) if last_event_id is not None else (after or 0)
     slot = await StreamSlot.take(runtime, counted_owner(caller, record.owner), "event streams")

@@ -13,7 +13,7 @@ from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, Response
 
 from api.bodies import GuardedRoute
-from api.deps import CallerDep, ReaderDep, RuntimeDep, files_or_404
+from api.deps import CallerDep, ReaderDep, RuntimeDep
 from api.problems import ProblemDetails, ProblemError
 from schemas.errors import InvalidJob
 from schemas.views import ViewFiles, ViewRequest
@@ -40,7 +40,7 @@ async def create(job_id: str, request: ViewRequest, runtime: RuntimeDep, caller:
     ``inline`` answers the PNGs in the response and stores nothing. A job without a checkpoint yet, or whose method trains no
     field, or whose files would exceed the job's disk budget, is a ``409``; a camera that cannot be
     built a ``422``."""
-    files = files_or_404(runtime, job_id, caller)
+    files = runtime.service.files(job_id, caller)
     try:
         view_id, written, meta = await anyio.to_thread.run_sync(create_view, files, request, runtime.settings.limits,
                                                                 runtime.view_sessions, limiter=runtime.blocking)
@@ -67,7 +67,7 @@ async def create(job_id: str, request: ViewRequest, runtime: RuntimeDep, caller:
 def view_file(job_id: str, runtime: RuntimeDep, caller: ReaderDep,
               view_id: Annotated[str, PathParam(pattern=VIEW_ID_PATTERN, description="The view's id.")],
               name: Annotated[str, PathParam(pattern=VIEW_FILE_PATTERN, description="A file the view wrote.")]):
-    files = files_or_404(runtime, job_id, caller)
+    files = runtime.service.files(job_id, caller)
     key = files.key(f"views/{view_id}/{name}")
     media = MEDIA[re.sub(r".*\.", "", name)]
     path = files.store.local_path(key)

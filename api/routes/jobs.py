@@ -9,15 +9,14 @@ import anyio
 from fastapi import APIRouter, Header, Query, Request, Response
 
 from api.bodies import GuardedRoute
-from api.deps import CallerDep, ReaderDep, RuntimeDep, SettingsDep, may_mint_token, not_found, record_or_404
-from api.problems import ProblemDetails, ProblemError
+from api.deps import CallerDep, ReaderDep, RuntimeDep, SettingsDep, may_mint_token
+from api.problems import ProblemDetails, ProblemError, conflict
 from api.views import job_public
 from schemas.errors import InvalidJob
 from schemas.job import JobSpec
 from schemas.records import JobAccepted, JobPage, JobPublic, JobStatus
 from services.jobs.preflight import preflight
 from services.jobs.service import TooManyJobs
-from services.jobs.state import Conflict, UnknownJob
 from services.jobs.warm_start import source_checkpoint
 from services.runtime import Runtime
 
@@ -37,7 +36,7 @@ async def validate_job(spec: JobSpec, runtime: Runtime) -> None:
 
 
 @router.post("", status_code=202, response_model=JobAccepted,
-             responses={409: {"model": ProblemDetails}, 413: {"model": ProblemDetails},
+             responses={409: conflict("idempotency-conflict"), 413: {"model": ProblemDetails},
                         422: {"model": ProblemDetails}, 429: {"model": ProblemDetails}},
              summary="Submit a job")
 async def submit_job(spec: JobSpec, response: Response, runtime: RuntimeDep, caller: CallerDep,
@@ -68,8 +67,6 @@ async def submit_job(spec: JobSpec, response: Response, runtime: RuntimeDep, cal
 
     try:
         record, _ = await anyio.to_thread.run_sync(submit, limiter=runtime.blocking)
-    except Conflict as exc:
-        raise ProblemError(409, "Conflict", str(exc), slug="idempotency-conflict") from None
     except TooManyJobs as exc:
         raise ProblemError(429, "Too many jobs", str(exc), slug="too-many-jobs", headers={"Retry-After": "30"}) from None
     return _accepted(response, record.id, record.status, await _fingerprint(spec), record.fingerprint)
@@ -111,48 +108,33 @@ def list_jobs(runtime: RuntimeDep, settings: SettingsDep, caller: CallerDep,
 def get_job(job_id: str, request: Request, runtime: RuntimeDep, settings: SettingsDep, caller: ReaderDep):
     """Status, current iteration, latest parameters and metrics, plan, error. ``read_token`` is a fresh
     read token only for a bearer key (a request with ``?token=`` gets none: tokens expire)."""
-    record = record_or_404(runtime, job_id, caller)
+    record = runtime.service.record(job_id, caller)
     return job_public(record, runtime.service.states.files(job_id), settings, mint_token=may_mint_token(request))
 
 
 @router.post("/{job_id}/cancel", status_code=202, response_model=JobPublic,
-             responses={404: {"model": ProblemDetails}, 409: {"model": ProblemDetails}}, summary="Cancel a job")
+             responses={404: {"model": ProblemDetails}, 409: conflict("job-finished")}, summary="Cancel a job")
 def cancel_job(job_id: str, runtime: RuntimeDep, settings: SettingsDep, caller: CallerDep):
     """A queued job is canceled at once; a running one stops at its next training step and keeps
     its artifacts. Canceling a finished job is a ``409``."""
-    try:
-        record = runtime.service.cancel(job_id, caller)
-    except UnknownJob:
-        raise not_found(job_id) from None
-    except Conflict as exc:
-        raise ProblemError(409, "Conflict", str(exc), slug="job-finished") from None
+    record = runtime.service.cancel(job_id, caller)
     return job_public(record, runtime.service.states.files(job_id), settings)
 
 
 @router.post("/{job_id}/images", status_code=202, response_model=JobPublic,
-             responses={404: {"model": ProblemDetails}, 409: {"model": ProblemDetails}},
+             responses={404: {"model": ProblemDetails}, 409: conflict("job-not-running")},
              summary="Write images at the next iteration")
 def request_images(job_id: str, runtime: RuntimeDep, settings: SettingsDep, caller: CallerDep):
     """The running job writes the renders of every view and the gradient images at its next
     iteration, whatever its images schedule (by default they take at most 5% of the run). A job
     that is not running is a ``409``."""
-    try:
-        record = runtime.service.request_images(job_id, caller)
-    except UnknownJob:
-        raise not_found(job_id) from None
-    except Conflict as exc:
-        raise ProblemError(409, "Conflict", str(exc), slug="job-not-running") from None
+    record = runtime.service.request_images(job_id, caller)
     return job_public(record, runtime.service.states.files(job_id), settings)
 
 
-@router.delete("/{job_id}", status_code=204, responses={404: {"model": ProblemDetails}, 409: {"model": ProblemDetails}},
+@router.delete("/{job_id}", status_code=204, responses={404: {"model": ProblemDetails}, 409: conflict("job-active")},
                summary="Delete a job")
 def delete_job(job_id: str, runtime: RuntimeDep, caller: CallerDep):
     """Delete a finished job and all its files (cancel an active one first: ``409``)."""
-    try:
-        runtime.service.delete(job_id, caller)
-    except UnknownJob:
-        raise not_found(job_id) from None
-    except Conflict as exc:
-        raise ProblemError(409, "Conflict", str(exc), slug="job-active") from None
+    runtime.service.delete(job_id, caller)
     return Response(status_code=204)

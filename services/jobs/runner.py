@@ -12,6 +12,14 @@ Meanwhile it watches:
 
 A child that dies without an outcome (a signal, out of memory) fails the job with a description
 ("the job's process crashed (SIGSEGV) reading m.ply"); the worker goes on.
+
+An attempt's life is a few named handlers, as in rq's worker (``perform_job``,
+``handle_job_success``, ``handle_job_failure``): :meth:`AttemptRunner._perform` stages the files,
+starts the child and, in ``finally``, kills it; :meth:`AttemptRunner._supervise` watches it; the
+attempt ends in exactly one of ``_handle_outcome`` (the child reported how the run ended),
+``_handle_stopped`` (it was asked to stop and ended without a report), ``_handle_failure`` (a
+refused job, a crash, a budget, a malformed report), each of which logs it, or :class:`Fenced`
+(another attempt owns the job: nothing is written).
 """
 
 from __future__ import annotations
@@ -58,6 +66,20 @@ class AttemptResult:
     detail: str | None = None
 
 
+@dataclass
+class _Watch:
+    """What the supervision of one attempt knows: the wall-clock ``deadline``, whether the child is
+    ``ready`` for signals (its handlers are installed: a signal before would kill it), the stop
+    asked of it (``stop_sent``) and when its grace ends, and whether the record's current images
+    request was passed on."""
+
+    deadline: float
+    ready: bool = False
+    stop_sent: Outcome | None = None
+    stop_deadline: float | None = None
+    images_signalled: bool = False
+
+
 class AttemptRunner:
     def __init__(self, states: JobStates, limits: Limits, scratch: Path):
         self.states, self.limits, self.scratch = states, limits, scratch
@@ -67,127 +89,168 @@ class AttemptRunner:
         """Run the attempt ``attempt`` (already claimed in the record) to its end."""
         folder = self.scratch / f"{job_id}-{attempt.rsplit('#', 1)[-1]}"
         try:
-            return self._run(job_id, attempt, folder, lost, stop)
+            return self._perform(job_id, attempt, folder, lost, stop)
         except Fenced as exc:
             log.warning("%s", exc)
             return AttemptResult(Outcome.FENCED, str(exc))
         finally:
             shutil.rmtree(folder, ignore_errors=True)
 
-    def _run(self, job_id: str, attempt: str, folder: Path, lost: threading.Event,
-             stop: Callable[[], Outcome | None]) -> AttemptResult:
-        files = self.states.files(job_id)
+    def _perform(self, job_id: str, attempt: str, folder: Path, lost: threading.Event,
+                 stop: Callable[[], Outcome | None]) -> AttemptResult:
+        """Stage the attempt's files, start its child, supervise it. Whatever ends the attempt, the
+        child is killed and its frame reader joined (``finally``)."""
         writer = JobWriter(self.states, job_id, attempt=attempt, byte_budget=self.limits.job_bytes)
         writer.guard()  # before staging anything: a stale attempt does nothing at all
+        try:
+            start = self._stage(job_id, folder)
+            child = Child("run", self._child_limits(job_id), folder, label=f"job-{job_id}")
+        except InvalidJob as exc:
+            return self._handle_failure(writer, str(exc), exc.field)
+        except ChildFailed as exc:  # NDRF_SANDBOX=required on a machine without namespaces
+            return self._handle_failure(writer, str(exc))
+        frames: queue.Queue = queue.Queue(maxsize=4)
+        reader = threading.Thread(target=_pump, args=(child, frames), name=f"frames-{job_id}", daemon=True)
+        try:
+            reader.start()
+            try:
+                write_frame(child.stdin, "start", *start_frame(start))
+                child.stdin.close()
+            except BrokenPipeError:  # it died at once: its end of stream says how
+                pass
+            return self._supervise(job_id, child, frames, writer, lost, stop)
+        finally:
+            child.kill()
+            reader.join(5)
+
+    def _stage(self, job_id: str, folder: Path) -> dict:
+        """The job's scene, and the checkpoint it resumes or warm-starts from, written to
+        ``folder``: the child's start frame. A job the checks refuse raises :class:`InvalidJob`."""
+        files = self.states.files(job_id)
         spec = JobSpec.model_validate(files.read(JobFiles.SPEC))
         folder.mkdir(parents=True, exist_ok=True)
-        try:
-            scene_file = stage_scene(spec.scene, folder / "scene", upload_limits(self.limits))
-        except InvalidJob as exc:
-            return self._fail(writer, str(exc), exc.field)
+        scene_file = stage_scene(spec.scene, folder / "scene", upload_limits(self.limits))
         resume = files.resume_checkpoint()
         resume_file = warm_file = None
         if resume is not None:
             resume_file = folder / "resume.pt"
             resume_file.write_bytes(resume)
         elif spec.warm_start is not None:  # the source within this job's tenant only (checked again here)
-            try:
-                warm = source_checkpoint(self.states, spec, self.states.get(job_id).owner)
-            except InvalidJob as exc:
-                return self._fail(writer, str(exc), exc.field)
-            warm_file = folder / "warm.pt"
+            warm = source_checkpoint(self.states, spec, self.states.get(job_id).owner)
             assert warm is not None  # a job with warm_start gets its source's bytes or an InvalidJob
+            warm_file = folder / "warm.pt"
             warm_file.write_bytes(warm)
+        return {"spec": spec.model_dump(mode="json"), "scene_file": str(scene_file) if scene_file else None,
+                "resume_file": str(resume_file) if resume_file else None,
+                "warm_file": str(warm_file) if warm_file else None}
+
+    def _child_limits(self, job_id: str) -> ChildLimits:
+        """Memory and wall clock of the settings; a sandboxed run's kernel cache is its key's."""
         kernels = str(kernel_cache(self.scratch, self.states.get(job_id).owner)) if sandboxed() else None
-        limits = ChildLimits(memory_bytes=self.limits.child_memory_bytes, wall_seconds=self.limits.job_seconds,
-                             kernel_cache=kernels)
-        try:
-            child = Child("run", limits, folder, label=f"job-{job_id}")
-        except ChildFailed as exc:  # NDRF_SANDBOX=required on a machine without namespaces
-            return self._fail(writer, str(exc))
-        frames: queue.Queue = queue.Queue(maxsize=4)
-        reader = threading.Thread(target=_pump, args=(child, frames), name=f"frames-{job_id}", daemon=True)
-        try:
-            write_frame(child.stdin, "start", *start_frame({"spec": spec.model_dump(mode="json"),
-                                                             "scene_file": str(scene_file) if scene_file else None,
-                                                             "resume_file": str(resume_file) if resume_file else None,
-                                                             "warm_file": str(warm_file) if warm_file else None}))
-            child.stdin.close()
-        except BrokenPipeError:
-            pass
-        reader.start()
-        try:
-            return self._supervise(job_id, child, frames, writer, lost, stop)
-        finally:
-            child.kill()
-            reader.join(5)
+        return ChildLimits(memory_bytes=self.limits.child_memory_bytes, wall_seconds=self.limits.job_seconds,
+                           kernel_cache=kernels)
+
+    # ------------------------------------------------------------ supervision: a job's life as handlers
 
     def _supervise(self, job_id: str, child: Child, frames: queue.Queue, writer: JobWriter,
                    lost: threading.Event, stop: Callable[[], Outcome | None]) -> AttemptResult:
-        deadline = time.monotonic() + self.limits.job_seconds
-        signalled: Outcome | None = None
-        stop_deadline = None
-        ready = False  # the child signals once its handlers are installed: a signal before would kill it
-        images_signalled = False  # SIGUSR2 sent for the record's current images_requested
+        """Watch the child until the attempt ends: the lease, the host's requests, the budgets,
+        then the child's next frame. Every way out is one of the ``_handle_*`` methods below (or
+        :class:`Fenced`, raised to :meth:`run`); the caller kills the child in ``finally``."""
+        watch = _Watch(deadline=time.monotonic() + self.limits.job_seconds)
         while True:
             if lost.is_set():
                 raise Fenced(job_id, writer.attempt, "another worker (the lease was lost)")
-            if ready and writer.asked_for_images and not images_signalled:
-                child.signal(signal.SIGUSR2)  # the next iteration writes its images
-                images_signalled = True
-            elif not writer.asked_for_images:
-                images_signalled = False
-            reason = stop()
-            if reason and signalled is None and ready:
-                signalled, stop_deadline = reason, time.monotonic() + STOP_GRACE_SECONDS
-                child.signal(STOP_SIGNALS[reason])
-                log.info("job %s: asked the run to stop (%s)", job_id, reason)
-            if time.monotonic() > deadline:
-                child.kill()
-                return self._fail(writer, f"the job exceeded its wall-clock budget of {self.limits.job_seconds:g} s "
-                                          f"(NDRF_MAX_JOB_SECONDS)")
-            if stop_deadline is not None and time.monotonic() > stop_deadline:
-                child.kill()  # it did not stop in time: the last checkpoint stands
-                return self._end(writer, {"status": _stopped(signalled), "iterations": _next_iteration(writer.files),
-                                          "seconds": 0.0})
+            self._forward_requests(job_id, child, writer, stop(), watch)
+            ended = self._check_clocks(child, writer, watch)
+            if ended is not None:
+                return ended
             try:
                 item = frames.get(timeout=POLL_SECONDS)
             except queue.Empty:
                 continue
-            if isinstance(item, tuple) and item[0] == "ready":
-                ready = True
-                continue
-            if isinstance(item, BaseException):
-                child.kill()
-                child.wait()
-                if isinstance(item, EOFError) and signalled is not None:
-                    # We asked it to stop and it died: our signal arrived before its handler was
-                    # installed (the process was starting). Canceled is canceled; a shutdown hands back.
-                    return self._end(writer, {"status": _stopped(signalled),
-                                              "iterations": _next_iteration(writer.files), "seconds": 0.0})
-                if isinstance(item, EOFError):
-                    sent = STOP_SIGNALS.get(signalled) if signalled else None
-                    if sent is not None and child.proc.returncode == -sent:
-                        # it died of our stop signal before its handler was installed (it had just
-                        # started): it stopped as asked, and the last checkpoint stands
-                        return self._end(writer, {"status": signalled, "iterations": _next_iteration(writer.files),
-                                                  "seconds": 0.0})
-                    return self._fail(writer, child.describe_exit("the job's process"))
-                return self._fail(writer, f"the job's process sent a malformed report ({item})")
-            kind, meta, blobs = item
-            try:
-                if kind == "outcome":
-                    return self._end(writer, meta)
-                self._dispatch(writer, kind, meta, blobs)
-            except BudgetExceeded as exc:
-                child.kill()
-                return self._fail(writer, str(exc))
-            except StoreFull as exc:
-                child.kill()
-                return self._fail(writer, f"the artifact store is full: {exc}")
-            except (FrameError, ValueError) as exc:
-                child.kill()
-                return self._fail(writer, f"the job's process sent a malformed report ({exc})")
+            ended = self._handle_frame(child, writer, watch, item)
+            if ended is not None:
+                return ended
+
+    @staticmethod
+    def _forward_requests(job_id: str, child: Child, writer: JobWriter, reason: Outcome | None,
+                          watch: _Watch) -> None:
+        """Pass the record's images request (SIGUSR2, once per request) and the host's stop request
+        (``reason``: SIGUSR1 to cancel, SIGTERM to interrupt, once) to a child that is ready for
+        signals; starts the grace period of a stop."""
+        if not watch.ready:
+            return
+        if writer.asked_for_images and not watch.images_signalled:
+            child.signal(signal.SIGUSR2)  # the next iteration writes its images
+        watch.images_signalled = writer.asked_for_images
+        if reason and watch.stop_sent is None:
+            watch.stop_sent, watch.stop_deadline = reason, time.monotonic() + STOP_GRACE_SECONDS
+            child.signal(STOP_SIGNALS[reason])
+            log.info("job %s: asked the run to stop (%s)", job_id, reason)
+
+    def _check_clocks(self, child: Child, writer: JobWriter, watch: _Watch) -> AttemptResult | None:
+        """The wall-clock budget (the job fails) and a stop's grace period (it stopped)."""
+        now = time.monotonic()
+        if now > watch.deadline:
+            child.kill()
+            return self._handle_failure(writer, f"the job exceeded its wall-clock budget of "
+                                                f"{self.limits.job_seconds:g} s (NDRF_MAX_JOB_SECONDS)")
+        if watch.stop_sent is not None and watch.stop_deadline is not None and now > watch.stop_deadline:
+            child.kill()  # it did not stop in time: the last checkpoint stands
+            return self._handle_stopped(writer, watch.stop_sent, "did not stop within its grace period")
+        return None
+
+    def _handle_frame(self, child: Child, writer: JobWriter, watch: _Watch, item) -> AttemptResult | None:
+        """One item of the frame reader: the child's readiness, its end of stream (or a frame it got
+        wrong), its outcome, or a report to write."""
+        if isinstance(item, tuple) and item[0] == "ready":
+            watch.ready = True
+            return None
+        if isinstance(item, BaseException):
+            return self._handle_exit(child, writer, watch, item)
+        kind, meta, blobs = item
+        try:
+            if kind == "outcome":
+                return self._handle_outcome(writer, meta)
+            self._dispatch(writer, kind, meta, blobs)
+        except BudgetExceeded as exc:
+            child.kill()
+            return self._handle_failure(writer, str(exc))
+        except StoreFull as exc:
+            child.kill()
+            return self._handle_failure(writer, f"the artifact store is full: {exc}")
+        except (FrameError, ValueError) as exc:
+            child.kill()
+            return self._handle_failure(writer, f"the job's process sent a malformed report ({exc})")
+        return None
+
+    def _handle_exit(self, child: Child, writer: JobWriter, watch: _Watch, item: BaseException) -> AttemptResult:
+        """The child's output ended without an outcome (``EOFError``) or could not be read. After a
+        stop request the child stopped as asked, however it ended (the last checkpoint stands: a
+        canceled job is canceled, an interrupted one handed back); otherwise it crashed."""
+        child.kill()
+        child.wait()
+        if not isinstance(item, EOFError):
+            return self._handle_failure(writer, f"the job's process sent a malformed report ({item})")
+        if watch.stop_sent is not None:
+            return self._handle_stopped(writer, watch.stop_sent, child.describe_exit("its process"))
+        return self._handle_failure(writer, child.describe_exit("the job's process"))
+
+    def _handle_outcome(self, writer: JobWriter, outcome: dict) -> AttemptResult:
+        """The child reported how the run ended: write it as the job's end."""
+        if outcome.get("status") not in set(Outcome) - {Outcome.FENCED}:
+            raise FrameError(f"unknown outcome {outcome.get('status')!r}")
+        writer.finish(outcome)
+        log.info("job %s: the run ended %s", writer.job_id, outcome["status"])
+        return AttemptResult(Outcome(outcome["status"]), outcome.get("error"))
+
+    def _handle_stopped(self, writer: JobWriter, asked: Outcome, how: str) -> AttemptResult:
+        """A run asked to stop that ended without reporting (``how``): canceled stays canceled, an
+        interrupted run goes back to the queue from its last checkpoint."""
+        log.info("job %s: the run was asked to stop (%s) and ended without a report: %s", writer.job_id, asked, how)
+        return self._handle_outcome(writer, {"status": _stopped(asked), "iterations": _next_iteration(writer.files),
+                                             "seconds": 0.0})
 
     @staticmethod
     def _dispatch(writer: JobWriter, kind: str, meta: dict, blobs: dict[str, bytes]) -> None:
@@ -212,13 +275,8 @@ class AttemptRunner:
         else:
             raise FrameError(f"unknown report {kind!r}")
 
-    def _end(self, writer: JobWriter, outcome: dict) -> AttemptResult:
-        if outcome.get("status") not in set(Outcome) - {Outcome.FENCED}:
-            raise FrameError(f"unknown outcome {outcome.get('status')!r}")
-        writer.finish(outcome)
-        return AttemptResult(Outcome(outcome["status"]), outcome.get("error"))
-
-    def _fail(self, writer: JobWriter, error: str, field: str | None = None) -> AttemptResult:
+    def _handle_failure(self, writer: JobWriter, error: str, field: str | None = None) -> AttemptResult:
+        """The attempt failed (``error``, naming the job field when one is at fault): the job's end."""
         log.warning("job %s failed: %s", writer.job_id, error)
         from services.jobs.preflight import public_message
 
@@ -244,9 +302,9 @@ def _pump(child: Child, frames: queue.Queue) -> None:
         frames.put(exc)
 
 
-def _stopped(signalled: str | None) -> Outcome:
+def _stopped(asked: Outcome) -> Outcome:
     """How an attempt ends that was asked to stop and stopped (or died) before reporting."""
-    return Outcome.INTERRUPTED if signalled == Outcome.INTERRUPTED else Outcome.CANCELED
+    return Outcome.INTERRUPTED if asked == Outcome.INTERRUPTED else Outcome.CANCELED
 
 
 def _next_iteration(files: JobFiles) -> int:

@@ -17,9 +17,9 @@ import time
 
 import pytest
 
+from harness.cluster import Api, Process, Redis, small_job, start_api
 from tests.support.attack import Outcome, Watch, chunked, pieces, raw_request, report, rss_mib
 from tests.support.scenes import SELF_CONTAINED_XML
-from tests.support.service import Api, Process, RedisServer, small_job, start_api
 
 pytestmark = pytest.mark.slow
 
@@ -33,7 +33,7 @@ HEADER_READ_SECONDS = 3
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("adversarial")
-    redis = RedisServer().start()
+    redis = Redis().start()
     env = {"REDIS_URL": redis.url, "NDRF_STORE": str(tmp / "store"), **KEYS,
            "NDRF_BODY_READ_SECONDS": str(BODY_READ_SECONDS),
            "NDRF_HEADER_READ_SECONDS": str(HEADER_READ_SECONDS), "NDRF_MAX_CONNECTIONS": "400"}
@@ -55,7 +55,7 @@ def stack(tmp_path_factory):
     report(outcomes, tmp / "adversarial.json")
     for proc in (worker, api_proc):
         proc.kill(signal.SIGKILL)
-    redis.stop()
+    redis.kill()
     assert hwm < idle + BUDGET_MIB, f"the API peaked at {hwm:.0f} MiB, idle {idle:.0f} MiB"
 
 

@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from tests.support.service import ROOT, Api, small_job, start_api
+from harness.cluster import ROOT, Api, small_job, start_api
 
 KEYS = {"NDRF_API_KEYS": "alice-key,bob-key", "NDRF_ADMIN_KEYS": "admin-key"}
 

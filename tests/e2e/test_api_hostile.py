@@ -13,9 +13,9 @@ import struct
 
 import pytest
 
+from harness.cluster import Process, Redis, small_job, start_api
 from tests.support.payloads import QUAD, TRIANGLES, ply_header, png, serialized, serialized_shape
 from tests.support.scenes import SELF_CONTAINED_XML, upload_scene
-from tests.support.service import Process, RedisServer, small_job, start_api
 
 #: The API process's peak resident memory after the whole suite (VmHWM), in MiB. The API imports
 #: FastAPI, pydantic, numpy and Pillow; a scene loaded in-process would add Mitsuba (and a hostile
@@ -44,14 +44,14 @@ def with_shapes(body: str) -> str:
 @pytest.fixture(scope="module")
 def service(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("hostile")
-    redis = RedisServer().start()
+    redis = Redis().start()
     env = {"REDIS_URL": redis.url, "NDRF_STORE": str(tmp / "store"), "NDRF_LEASE_SECONDS": "5"}
     api_proc, api = start_api(tmp, env)
     worker = Process(["-v", "worker", "--name", "w"], env, tmp / "worker.log")
     yield api, api_proc, worker, env
     for proc in (worker, api_proc):
         proc.kill(signal.SIGKILL)
-    redis.stop()
+    redis.kill()
 
 
 def refused(api, job, field: str, *fragments: str, status: int = 422) -> dict:
@@ -175,7 +175,7 @@ def test_the_worker_fails_a_hostile_job_that_bypassed_the_api_and_goes_on(servic
 
 
 def test_a_job_whose_process_runs_out_of_memory_fails_and_the_worker_goes_on(tmp_path):
-    redis = RedisServer().start()
+    redis = Redis().start()
     env = {"REDIS_URL": redis.url, "NDRF_STORE": str(tmp_path / "store"), "NDRF_LEASE_SECONDS": "5"}
     api_proc, api = start_api(tmp_path, env)
     worker = Process(["-v", "worker", "--name", "tight"], {**env, "NDRF_MAX_CHILD_MEMORY_BYTES": str(300 << 20)},
@@ -188,7 +188,7 @@ def test_a_job_whose_process_runs_out_of_memory_fails_and_the_worker_goes_on(tmp
     finally:
         for proc in (worker, api_proc):
             proc.kill(signal.SIGKILL)
-        redis.stop()
+        redis.kill()
 
 
 def test_after_every_attack_a_normal_job_finishes_and_the_api_stayed_small(service):

@@ -10,7 +10,7 @@ from urllib.parse import urlsplit
 
 import pytest
 
-from tests.support.service import Api, small_job, start_api, wait_until
+from harness.cluster import Api, small_job, start_api, wait_until
 
 CAP = 3
 
@@ -105,7 +105,7 @@ def test_a_stream_is_refused_with_503_when_redis_cannot_count(two_apis):
     a = Api(first.base, "tenant-a")
     status, _, job = a.json("POST", "/v1/jobs", _job())
     assert status == 202, job
-    redis_server.stop()
+    redis_server.kill()
     status, headers, conn = _open(first, f"/v1/jobs/{job['id']}/events", "tenant-a")
     conn.close()
     assert status == 503 and headers.get("Retry-After"), (status, headers)

@@ -10,11 +10,11 @@ import signal
 import numpy as np
 import pytest
 
+from harness.cluster import small_job, start_api
 from tests.support.scenes import QUAD_OBJ as QUAD
 from tests.support.scenes import SELF_CONTAINED_XML
 from tests.support.scenes import UPLOAD_MATERIALS as MATERIALS
 from tests.support.scenes import UPLOAD_XML as SCENE
-from tests.support.service import small_job, start_api
 
 CAPS = {"NDRF_MAX_UPLOAD_BYTES": "400000", "NDRF_MAX_RESOLUTION": "128", "NDRF_MAX_SPP": "256",
         "NDRF_MAX_ITERATIONS": "100", "NDRF_MAX_PARAMETERS": "6", "NDRF_MAX_MESH_BYTES": "20000",

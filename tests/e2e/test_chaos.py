@@ -5,7 +5,7 @@ must show one writer at a time: no attempt writes after its successor started.""
 
 from __future__ import annotations
 
-from tests.support.chaos import ChaosConfig, markdown, run
+from harness.chaos import ChaosConfig, markdown, run
 
 
 def test_kill_and_redis_restart_lose_nothing_and_fail_nothing(tmp_path):

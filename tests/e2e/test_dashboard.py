@@ -16,9 +16,9 @@ import time
 
 import pytest
 
+from harness.cluster import ROOT, small_job, start_api
 from tests.support.browser import CHROMIUM, KEY, open_with_key
 from tests.support.scenes import QUAD_OBJ, UPLOAD_MATERIALS, UPLOAD_XML
-from tests.support.service import ROOT, small_job, start_api
 
 FINISHED = ("succeeded", "failed", "canceled")
 

@@ -14,8 +14,8 @@ import time
 
 import pytest
 
+from harness.cluster import small_job, start_api
 from tests.support.browser import CHROMIUM, KEY, open_with_key
-from tests.support.service import small_job, start_api
 
 pytestmark = pytest.mark.skipif(not CHROMIUM.exists(), reason="needs Debian's Chromium at /usr/bin/chromium")
 

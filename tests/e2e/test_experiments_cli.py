@@ -11,8 +11,8 @@ import pytest
 from click.testing import CliRunner
 
 from client.scenes import SceneError, pack_scene
+from harness.cluster import small_job
 from tests.support.scenes import QUAD_OBJ, UPLOAD_MATERIALS, UPLOAD_XML
-from tests.support.service import small_job
 
 
 def local_scene(folder):

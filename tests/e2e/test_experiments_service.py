@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from tests.support.service import small_job, start_api, wait_until
+from harness.cluster import small_job, start_api, wait_until
 
 
 @pytest.fixture()
@@ -216,7 +216,7 @@ def test_experiments_are_checked_before_anything_is_queued_and_belong_to_their_k
     assert status == 422 and "NDRF_MAX_EXPERIMENT_RUNS" in problem["detail"]
     assert len(list(store.glob("*/record.json"))) == jobs_before           # no job was created
 
-    from tests.support.service import Api
+    from harness.cluster import Api
 
     other = Api(api.base, "k2")
     _, _, mine = api.json("POST", "/v1/experiments", {"base": small_job("direct", iterations=2)})

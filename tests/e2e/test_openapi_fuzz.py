@@ -13,7 +13,7 @@ import pytest
 import schemathesis
 from hypothesis import HealthCheck, given, settings
 
-from tests.support.service import small_job, start_api
+from harness.cluster import small_job, start_api
 
 
 @pytest.fixture(scope="module")

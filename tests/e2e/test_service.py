@@ -8,7 +8,8 @@ import time
 
 import numpy as np
 
-from tests.support.service import read_sse, small_job, start_api, wait_until
+from harness.cluster import small_job, start_api, wait_until
+from tests.support.service import read_sse
 
 
 def test_embedded_submit_stream_succeed_and_fetch_images(tmp_path, store_env):
@@ -180,7 +181,7 @@ def test_redis_restart_without_persistence_the_job_still_finishes(stack, redis_s
     job_id = accepted["id"]
     wait_until(lambda: (api.json("GET", f"/v1/jobs/{job_id}")[2].get("iteration") or 0) >= 2, 120, 0.1,
                what="two iterations")
-    redis_server.stop()
+    redis_server.kill()
     time.sleep(1.0)
     redis_server.start()                     # same port, empty: the queue entry and the lease are gone
     job = api.wait_status(job_id, {"succeeded", "failed"}, 180)

@@ -14,23 +14,16 @@ import urllib.request
 import numpy as np
 import pytest
 
+from harness.cluster import Process, Redis, small_job, start_api, wait_until
 from services.jobs.isolation import KERNELS
-from tests.support.service import (
-    Process,
-    RedisServer,
-    open_test_store,
-    read_sse,
-    small_job,
-    start_api,
-    wait_until,
-)
+from tests.support.service import open_test_store, read_sse
 
 pytestmark = pytest.mark.slow
 
 
 @pytest.fixture()
 def machines(tmp_path, s3_server):
-    redis = RedisServer().start()
+    redis = Redis().start()
     env = {"REDIS_URL": redis.url, "NDRF_LEASE_SECONDS": "3", "NDRF_API_KEYS": "k-one",
            **s3_server.env(prefix=f"m-{tmp_path.name}")}
     processes: list[Process] = []
@@ -54,7 +47,7 @@ def machines(tmp_path, s3_server):
     yield Machines()
     for proc in processes:
         proc.kill(signal.SIGKILL)
-    redis.stop()
+    redis.kill()
 
 
 def _no_redirect(api, path: str):

@@ -11,6 +11,7 @@ import time
 
 import pytest
 
+from harness.cluster import Redis, small_job, wait_until
 from schemas.experiments import ExperimentSpec
 from schemas.job import JobSpec
 from services.experiments.expand import InvalidExperiment
@@ -22,14 +23,13 @@ from services.settings import Limits
 from services.store.job import JobFiles
 from services.store.local import FolderStore
 from tests.support.experiments import FakeWorker
-from tests.support.service import RedisServer, small_job, wait_until
 
 
 @pytest.fixture(scope="module")
 def redis_server():
-    server = RedisServer().start()
+    server = Redis().start()
     yield server
-    server.stop()
+    server.kill()
 
 
 @pytest.fixture(params=["local", "redis"])

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from harness.cluster import small_job, wait_until
 from services.settings import Settings
-from tests.support.service import small_job, wait_until
 
 ALICE, BOB = {"Authorization": "Bearer alice-key"}, {"Authorization": "Bearer bob-key"}
 CAMERA = {"origin": [0.3, 0.2, 3.0], "target": [0.0, 0.0, 0.0], "resolution": [16, 16], "spp": 2}

@@ -6,6 +6,7 @@ import threading
 
 import pytest
 
+from harness.cluster import small_job
 from schemas.job import JobSpec
 from schemas.outcomes import Outcome
 from schemas.records import JobStatus
@@ -16,7 +17,6 @@ from services.queue.local import LocalEventBus, LocalJobQueue
 from services.settings import Limits
 from services.store.job import JobFiles
 from services.store.local import FolderStore
-from tests.support.service import small_job
 
 
 @pytest.fixture

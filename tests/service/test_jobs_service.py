@@ -6,13 +6,13 @@ import time
 
 import pytest
 
+from harness.cluster import small_job
 from schemas.job import JobSpec
 from schemas.records import JobStatus
 from services.jobs.service import Caller, JobService, TooManyJobs
 from services.jobs.state import Conflict, UnknownJob
 from services.queue.local import LocalEventBus, LocalJobQueue
 from services.store.local import FolderStore
-from tests.support.service import small_job
 
 ALICE, BOB, ADMIN = Caller("alice"), Caller("bob"), Caller("root", admin=True)
 

@@ -9,18 +9,18 @@ import time
 
 import pytest
 
+from harness.cluster import Redis
 from services.queue.base import Renewal
 from services.queue.local import LocalEventBus, LocalJobQueue, LocalStreamSlots
-from tests.support.service import RedisServer
 
 LEASE = 0.6
 
 
 @pytest.fixture(scope="module")
 def redis_server():
-    server = RedisServer().start()
+    server = Redis().start()
     yield server
-    server.stop()
+    server.kill()
 
 
 @pytest.fixture(params=["redis", "local"])
@@ -193,9 +193,9 @@ def test_local_stream_slots_cap():
 def test_stream_slots_fail_closed_when_redis_errors():
     """A slots object whose Redis is unreachable refuses (SlotsUnavailable: the route's 503), it
     never lets a stream in uncounted."""
+    from harness.cluster import free_port
     from services.queue.base import SlotsUnavailable
     from services.queue.redis_queue import RedisEventBus, RedisStreamSlots, connect
-    from tests.support.cluster import free_port
 
     url = f"redis://127.0.0.1:{free_port()}/0"                # nothing listens there
     slots = RedisStreamSlots(RedisEventBus(connect(url), url))

@@ -7,9 +7,9 @@ import threading
 
 from fastapi.testclient import TestClient
 
+from harness.cluster import wait_until
 from services.runtime import build_runtime
 from services.settings import Settings
-from tests.support.service import wait_until
 
 
 class _Flaky:

@@ -216,8 +216,8 @@ def test_folder_a_full_disk_is_a_store_full_error(tmp_path, monkeypatch):
 
 def _second_machine(store):
     """Another S3Store on the same bucket and prefix: another machine, with its own caches."""
+    from harness.s3server import ACCESS_KEY, REGION, SECRET_KEY
     from services.store.s3 import S3Store
-    from tests.support.s3server import ACCESS_KEY, REGION, SECRET_KEY
 
     return S3Store(store.url, endpoint=store.endpoint, access_key_id=ACCESS_KEY, secret_access_key=SECRET_KEY,
                    region=REGION)
@@ -256,8 +256,8 @@ def test_s3_replay_lists_after_the_last_event_id(s3_store):
 
 
 def test_s3_objects_carry_their_content_type_and_presigned_urls_work(s3_store):
+    from harness.s3server import ACCESS_KEY, REGION, SECRET_KEY
     from services.store.s3 import S3Store
-    from tests.support.s3server import ACCESS_KEY, REGION, SECRET_KEY
 
     s3_store.put("job/iterations/000001/render.png", b"\x89PNG" + b"0" * 2000)
     assert s3_store.redirect_url("job/iterations/000001/render.png") is None    # off by default
@@ -304,7 +304,7 @@ def test_the_s3_client_is_imported_only_when_an_s3_store_is_configured(tmp_path)
     import subprocess
     import sys
 
-    from tests.support.cluster import ROOT
+    from harness.cluster import ROOT
 
     code = ("import sys; from services.settings import Settings; from services.runtime import open_store; "
             "import api.app, worker.main; open_store(Settings(store=sys.argv[1])); "

@@ -9,6 +9,7 @@ import time
 
 import pytest
 
+from harness.cluster import small_job, wait_until
 from schemas.experiments import ExperimentAppend, ExperimentSpec
 from schemas.job import JobSpec
 from schemas.records import FINISHED, JobStatus
@@ -20,7 +21,6 @@ from services.queue.local import LocalEventBus, LocalJobQueue
 from services.settings import Limits
 from services.store.local import FolderStore
 from tests.support.experiments import FakeWorker
-from tests.support.service import small_job, wait_until
 
 
 @pytest.fixture

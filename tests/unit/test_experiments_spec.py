@@ -10,6 +10,7 @@ import math
 
 import pytest
 
+from harness.cluster import small_job
 from schemas.errors import InvalidJob
 from schemas.experiments import ExperimentSpec, RunRow
 from schemas.records import IterationRecord, JobRecord, JobStatus
@@ -30,7 +31,6 @@ from services.experiments.validate import check_run_count, validate_runs
 from services.settings import Limits
 from services.store.job import JobFiles
 from services.store.local import FolderStore
-from tests.support.service import small_job
 
 
 def spec(**sweep) -> ExperimentSpec:

@@ -11,8 +11,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
+from harness.cluster import small_job
 from services.settings import Limits, Settings
-from tests.support.service import small_job
 
 ALICE = {"Authorization": "Bearer alice-key", "Content-Type": "application/json"}
 

@@ -12,7 +12,7 @@ import pytest
 import uvicorn
 
 from api.server import HeaderTimeoutH11
-from tests.support.cluster import free_port
+from harness.cluster import free_port
 
 
 class Quick(HeaderTimeoutH11):

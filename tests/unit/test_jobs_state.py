@@ -96,8 +96,8 @@ def _machines(states):
     store = states.store
     if isinstance(store, FolderStore):
         return states, JobStates(FolderStore(store.root))
+    from harness.s3server import ACCESS_KEY, REGION, SECRET_KEY
     from services.store.s3 import S3Store
-    from tests.support.s3server import ACCESS_KEY, REGION, SECRET_KEY
 
     return states, JobStates(S3Store(store.url, endpoint=store.endpoint, access_key_id=ACCESS_KEY,
                                      secret_access_key=SECRET_KEY, region=REGION))

@@ -16,7 +16,7 @@ import json
 import numpy as np
 import pytest
 
-from tests.support.cluster import ROOT
+from harness.cluster import ROOT
 
 pytestmark = pytest.mark.slow
 

@@ -232,15 +232,15 @@ def test_per_scalar_gradient_images_of_a_texture_job_are_refused(mi):
     from services.solver.optimize.evaluate import evaluate_gradient
 
     with pytest.raises(InvalidJob, match="one per scalar, 12288 for a texture job"):
-        evaluate_gradient(_job(method="prb"), "prb")
+        evaluate_gradient(_job(method="prb"), "prb", spp=1)
 
 
 def test_auto_gives_a_texture_job_every_view_and_16_spp_unless_set():
     from types import SimpleNamespace
 
-    from services.solver.optimize.resolve import TEXTURE_SPP, resolve
-
     import numpy as np
+
+    from services.solver.optimize.resolve import TEXTURE_SPP, resolve
 
     parameters = SimpleNamespace(has_textures=True, n=48, sizes=[48], textures=[("wall.reflectance.data", (4, 4, 3))])
     measures = SimpleNamespace(closure=lambda: None, direct=lambda: [False] * 48,   # never asked for a texture

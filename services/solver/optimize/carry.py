@@ -12,7 +12,7 @@ cannot carry is refused before it runs, with the reason (an :class:`InvalidJob` 
                        ``training.head`` carries them
 ``direct``,            any count: dz/dp is a contraction at the camera hits and at one bounce,
 ``radiance-cache``     formed for a texture job by one adjoint pass through their own estimate
-                       (``OneBounce.adjoint_gradient``), never P images
+                       (``CameraHitMethod.adjoint_gradient``), never P images
 ``levenberg-marquardt``,  not textures: the steps solve with a P x P curvature (a 64 x 64
 ``gauss-newton``       texture: 12,288^2 doubles, 1.2 GB) from P Jacobian images per view
 ``jacobian:``          not textures: dL_theta (as above)

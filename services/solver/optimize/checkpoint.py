@@ -62,10 +62,3 @@ def loads(blob: bytes, spec: JobSpec) -> dict:
         raise ValueError("the checkpoint belongs to a different job specification")
     torch.set_rng_state(state["torch_rng"])
     return state
-
-
-def method_of(blob: bytes) -> str | None:
-    """The gradient method the checkpointed run used (what an ``auto`` job picked), without
-    touching torch's random state."""
-    state = torch.load(io.BytesIO(blob), map_location="cpu", weights_only=True)
-    return state.get("method")

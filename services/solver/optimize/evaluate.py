@@ -32,8 +32,11 @@ class GradientEvaluation:
     summary: dict
 
 
-def evaluate_gradient(spec: JobSpec, method_name: str, *, spp: int | None = None, train_steps: int | None = None,
+def evaluate_gradient(spec: JobSpec, method_name: str, *, spp: int, train_steps: int | None = None,
                       scene_file: Path | None = None) -> GradientEvaluation:
+    """``dI/dp`` of every sensor with a target at ``spp`` samples per pixel (the caller's choice: the
+    job's ``render.gradient_spp`` serves the loop's steps, not one image), after ``train_steps``
+    training steps of the method's fields (default: the job's ``training.warmup_steps``)."""
     spec = spec.model_copy(update={"method": method_name, "jacobian": "method"})
     prepared, measures = prepare(spec, scene_file=scene_file)
     recipe = resolve(spec, prepared.problem.parameters, len(prepared.targets), measures)
@@ -44,7 +47,6 @@ def evaluate_gradient(spec: JobSpec, method_name: str, *, spp: int | None = None
                                        f"job: run the job instead (ndrf run); its images iterations write "
                                        f"textures/<key>.dz_dp.npy, the gradient as a texture")
     method = make_method(method_name, problem.plan, recipe.depth)
-    spp = spp or spec.render.gradient_spp
     steps = spec.training.warmup_steps if train_steps is None else train_steps
 
     start = time.perf_counter()

@@ -79,9 +79,8 @@ def textured_box_builtin() -> dict:
     return textured_box()
 
 
-#: The built-in ``textured-floor``: texels per side, cameras, film side, the texture's key.
+#: The built-in ``textured-floor`` (its texture: ``floor-paint.reflectance.data``): texels per side, cameras, film side.
 FLOOR_SIZE, FLOOR_VIEWS, FLOOR_FILM = 16, 2, 32
-FLOOR_KEY = "floor-paint.reflectance.data"
 
 
 def smooth_albedo(size: int = FLOOR_SIZE) -> np.ndarray:

@@ -6,7 +6,8 @@ integrators do:
 ``loss_gradient(dz_dy)``  ``dz/dp = Σ_pixels dz/dy · dy/dp`` (Eq. 10), ``(P,)`` float64: what the loop
                           calls every iteration. ``prb`` runs one adjoint pass whatever ``P``; the
                           camera-hit methods contract each camera ray's derivative with ``dz/dy`` at
-                          its pixel, without forming per-scalar images.
+                          its pixel, without forming per-scalar images (the forward mode of their
+                          one estimate, :mod:`.camera_hit`; its backward mode for a texture).
 ``images()``              per-scalar gradient images ``dI/dp``, ``(P, H, W, 3)`` float32 (Eq. 3): the
                           Jacobian of second-order steps, and what the loop writes on its images
                           schedule and ``ndrf gradient`` writes.

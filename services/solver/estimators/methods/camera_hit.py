@@ -1,15 +1,16 @@
 """The camera-hit methods: ``ndrf-lhs``, ``ndrf-rhs``, ``radiance-cache`` and ``direct``.
 
 All four trace the camera's primary rays (through delta surfaces) to their first non-delta hit
-``x``, reached with delta throughput ``β``, and estimate there (Eq. 3, 11)
+``x``, reached with delta throughput ``β`` and sensor weight ``W``, and estimate each ray's
+radiance and its derivative there (Eq. 3, 11)
 
-    dI = β · [∂E(x) + ∂L_r(x)]
+    I  = W β [E(x) + L_r(x)]            dI = W β [∂E(x) + ∂L_r(x)]
 
-where ``∂E(x)`` is exact (forward-mode AD of ``emitter.eval``) and ``∂L_r(x)`` is what the method
+where ``∂E(x)`` is exact (AD of ``emitter.eval``) and ``L_r``, ``∂L_r`` are what the method
 estimates:
 
 =================  ==========================================================================
-``ndrf-lhs``       ``dL_theta(x, ω_o)`` (Eq. 11)
+``ndrf-lhs``       ``∂L_r(x) = dL_theta(x, ω_o)`` (Eq. 11); ``L_r(x) = L_phi(x)``
 ``ndrf-rhs``       one MIS bounce from ``x``: the right-hand side of Eq. 4 with ``L_phi`` and
                    ``dL_theta`` at the next hit ``x'`` (Sec. 6.3)
 ``radiance-cache`` the same bounce with ``L_phi`` but ``∂L_r(x') = 0`` (Sec. 7.1: misses indirect
@@ -17,18 +18,36 @@ estimates:
 ``direct``         the same bounce with emitters only: direct illumination, no field
 =================  ==========================================================================
 
-Sampling is detached; ``β`` carries no derivative (see ``services.solver.sampling.delta``).
+The bounce (``services.solver.sampling.incident``) gives ``emitted`` and ``throughput`` ``T``, so
+that ``L_r(x) = emitted + T · L_phi(x')`` and ``∂L_r(x) = ∂(emitted + T · L_phi(x')) + T ·
+dL_theta(x')``. Sampling is detached (``β``, directions, densities and MIS weights carry no
+derivative; see ``services.solver.sampling.delta``), and the fields are detached: the estimate
+has an *attached* part, a Dr.Jit expression of the optimized parameters (``E(x)``, ``emitted``,
+``T · L_phi``), and a *field* part, the ``dL_theta`` term, a derivative the network gives directly.
 
-``dz/dp`` (Eq. 10) of a job with a bitmap texture, for ``direct`` and ``radiance-cache``: one
-reverse-mode pass per spp-pass (:meth:`OneBounce.adjoint_gradient`), never P images. With per-ray
-weights ``w = dz/dy[pixel] · W β / spp`` (detached; a box filter: a pixel is the mean of its rays)
+One estimate, three modes
+-------------------------
+As Mitsuba's ``prb`` writes its estimator once as ``sample(mode)`` and switches between
+``dr.forward_to`` and ``dr.backward_from`` in one place, :meth:`CameraHitMethod.sample` builds the
+estimate of one pass of ``K`` camera rays once (:meth:`CameraHitMethod._estimate`) and ``mode``
+says what is taken of it (``A``: the problem's active scalars, ``P``: all scalars):
 
-    dz/dp = ∂/∂p Σ_rays w · [E(x) + emitted + throughput · L_phi(x')]
+==========================  =======================================================  =========
+``dr.ADMode.Primal``        ``I`` per ray                                             ``(K, 1, 3)``
+``dr.ADMode.Forward``       ``dI/dp`` per ray and active scalar: forward-mode AD of   ``(K, A, 3)``
+                            the attached part, plus the field part
+``dr.ADMode.Backward``      ``dz/dp`` (Eq. 10) for per-ray adjoint weights ``δ``:     ``(P,)``
+                            one reverse-mode pass of ``Σ δ · I``, plus ``Σ δ ·``
+                            field part
+==========================  =======================================================  =========
 
-the estimate whose forward-mode derivative the scalar path contracts ray by ray (``L_phi``
-detached, absent for ``direct``): the same rays, the same value. The texture's value reaches
+The entry points drive it: :meth:`~CameraHitMethod.images` splats the forward mode into per-scalar
+images; :meth:`~CameraHitMethod.loss_gradient` contracts it with ``dz/dy`` ray by ray (a box filter:
+a pixel is the mean of its rays), or, for a job with a bitmap texture and no ``dL_theta``, runs
+the backward mode (:meth:`~CameraHitMethod.adjoint_gradient`) with ``δ = dz/dy[pixel] · W β /
+spp``: one reverse-mode pass per spp-pass, never P images. The texture's value reaches
 ``bsdf.eval`` through ``params.update()`` under ``ParameterSet.tracking``, so the backward pass
-reaches its ``data``. Jobs without a texture keep the forward-mode contraction.
+reaches its ``data``. The same seed draws the same rays and incident samples in every mode.
 """
 
 from __future__ import annotations
@@ -44,15 +63,15 @@ import torch
 
 from schemas.methods import Method
 from services.solver.estimators.methods.base import DIFFERENTIAL, RADIANCE, Fields, GradientMethod
-from services.solver.estimators.methods.head import color
 from services.solver.estimators.problem import Problem
 from services.solver.fields.field import evaluate
 from services.solver.jit_types import Bool, Color, MitsubaObject
 from services.solver.sampling.camera import CameraSamples, develop, sample_camera
-from services.solver.sampling.incident import IncidentGeometry, evaluate_attached, sample_geometry, sample_incident
+from services.solver.sampling.incident import IncidentGeometry, evaluate_attached, sample_geometry
 from services.solver.sampling.passes import passes_for
 from services.solver.sampling.surface import queryable
-from services.solver.sampling.tensors import field_query, mask, rgb, to_device, to_host
+from services.solver.sampling.tensors import color, field_query, floats, mask, rgb, to_device, to_host
+from services.solver.scene.params import FORWARD_GROUP
 from services.solver.seeds import derive_seed
 
 log = logging.getLogger(__name__)
@@ -61,19 +80,86 @@ log = logging.getLogger(__name__)
 RAYS_PER_PASS = 1 << 18
 
 
+@dataclass
+class CameraPass:
+    """One pass of ``K`` camera rays, detached: what every mode evaluates.
+
+    samples      the rays, their first non-delta hits ``x`` (``samples.chain.si``) and film positions
+    emitter      the emitter at ``x`` where ``on_emitter`` (mi.EmitterPtr, K)
+    scale        ``W β`` per ray, ``(K, 3)`` float32
+    reflected    the method's ``L_r(x)`` (:class:`AtHit` or :class:`Bounce`)
+    """
+
+    samples: CameraSamples
+    emitter: MitsubaObject
+    on_emitter: Bool
+    scale: torch.Tensor
+    reflected: AtHit | Bounce
+
+
+@dataclass
+class AtHit:
+    """``L_r(x)`` read at the camera hit (``ndrf-lhs``, Eq. 11): ``radiance`` ``L_phi(x)``
+    (``mi.Color3f``, K; the primal's only) and ``field`` ``dL_theta(x)`` ``(K, A, 3)`` (the
+    derivative modes' only)."""
+
+    radiance: Color | None
+    field: torch.Tensor | None
+
+    def attached(self, problem: Problem, keep: Bool) -> tuple[Color, Bool, Color | None]:
+        """``L_r(x)`` (no parameter reaches it), the rays kept (``keep``) and no throughput."""
+        return (mi.Color3f(0.0) if self.radiance is None else self.radiance), mi.Bool(keep), None
+
+    def field_part(self, ok: Bool, throughput: Color | None) -> torch.Tensor | None:
+        """``dL_theta(x)`` ``(K, A, 3)``."""
+        return self.field
+
+
+@dataclass
+class Bounce:
+    """``L_r(x)`` by one MIS bounce from the camera hit (Eq. 4 and 9 with ``M = 1`` per ray): the
+    detached ``geometry`` of the incident sample, ``L_phi(x')`` (``mi.Color3f``, K; None for
+    ``direct``) and ``dL_theta(x')`` ``(K, A, 3)`` (None without the differential field)."""
+
+    geometry: IncidentGeometry
+    radiance: Color | None
+    differential: torch.Tensor | None
+
+    def attached(self, problem: Problem, keep: Bool) -> tuple[Color, Bool, Color | None]:
+        """``emitted + T · L_phi(x')`` per ray, attached (under ``tracking``), evaluated only on the
+        rays ``keep``; the rays kept whose ``emitted`` and ``T`` are finite; ``T``."""
+        g = self.geometry
+        masked = replace(g, active_e=g.active_e & keep, active_b=g.active_b & keep,
+                         hits_emitter=g.hits_emitter & keep, hit_surface=g.hit_surface & keep)
+        emitted, throughput = evaluate_attached(problem.scene.scene, masked, attach_bsdf=problem.attach_bsdf,
+                                                attach_emission=problem.attach_emission)
+        with dr.resume_grad():
+            ok = keep & dr.all(dr.isfinite(dr.detach(emitted))) & dr.all(dr.isfinite(dr.detach(throughput)))
+            value = emitted if self.radiance is None else emitted + throughput * self.radiance
+        return value, ok, throughput
+
+    def field_part(self, ok: Bool, throughput: Color | None) -> torch.Tensor | None:
+        """``T · dL_theta(x')`` ``(K, A, 3)`` on the rays ``ok``."""
+        if self.differential is None:
+            return None
+        return rgb(dr.select(ok, dr.detach(throughput), 0.0))[:, None, :] * self.differential
+
+
 class CameraHitMethod(GradientMethod):
-    """Shared camera pass: primary rays, delta chains, exact ``∂E`` at emitter hits, then
-    :meth:`differential_radiance` at surface hits. Only the active scalars of the problem's layout
-    are differentiated; the others get zeros."""
+    """The camera pass and the one estimate of every mode (module docstring). A subclass says how
+    it reads ``L_r(x)`` (:meth:`reflected`). Only the active scalars of the problem's layout are
+    differentiated; the others get zeros."""
 
     @abstractmethod
-    def differential_radiance(self, problem: Problem, fields: Fields, si: mi.SurfaceInteraction3f,
-                              where: mi.Bool, sampler: mi.Sampler) -> torch.Tensor:
-        """``∂L_r(x, ω_o)`` at the lanes ``where`` of ``si``: ``(K, A, 3)`` (zeros elsewhere)."""
+    def reflected(self, problem: Problem, fields: Fields, si: mi.SurfaceInteraction3f, where: mi.Bool,
+                  sampler: mi.Sampler, primal: bool) -> AtHit | Bounce:
+        """What the method's ``L_r(x, ω_o)`` is made of at the lanes ``where`` of ``si`` (detached:
+        samples and field values), for the primal (``primal``) or the derivative modes."""
 
     # ------------------------------------------------------------ entry points
 
     def images(self, problem, fields, *, spp, seed, sensor=0):
+        """``dI/dp`` ``(P, H, W, 3)``: the forward mode splatted by the sensor's film."""
         self.check(fields)
         width, height = problem.scene.resolution(sensor)
         if problem.layout.active == 0:
@@ -82,17 +168,18 @@ class CameraHitMethod(GradientMethod):
         passes, per_pass = passes_for(width * height, spp, RAYS_PER_PASS)
         total = np.zeros((problem.layout.active, height, width, 3))
         for k in range(passes):
-            samples, values = self._rays(problem, fields, sensor_obj, per_pass, derive_seed(seed, "camera", k))
-            total += to_host(develop(sensor_obj, samples, values))
+            p = self.trace(problem, fields, sensor_obj, per_pass, derive_seed(seed, "camera", k))
+            total += to_host(develop(sensor_obj, p.samples, self.sample(dr.ADMode.Forward, problem, p)))
         return problem.layout.scatter_images((total / passes).astype(np.float32), problem.parameters.n)
 
     def loss_gradient(self, problem, fields, dz_dy, *, spp, seed, sensor=0):
-        """Eq. 10 per camera ray: with a box filter a pixel is the mean of its rays, so
-        ``dz/dp = Σ_rays dz/dy[pixel(ray)] · dI_ray / spp`` (no per-scalar image is formed)."""
+        """``dz/dp`` ``(P,)`` (Eq. 10). A job with a texture and no ``dL_theta``: the backward mode
+        (:meth:`adjoint_gradient`). Otherwise the forward mode contracted per camera ray: with a box
+        filter ``dz/dp = Σ_rays dz/dy[pixel(ray)] · dI_ray / spp`` (no per-scalar image formed)."""
+        if problem.parameters.has_textures and not self.needs_differential:
+            return self.adjoint_gradient(problem, fields, dz_dy, spp=spp, seed=seed, sensor=sensor)
         self.check(fields)
-        width, height = problem.scene.resolution(sensor)
-        if dz_dy.shape != (height, width, 3):
-            raise ValueError(f"dz/dy has shape {dz_dy.shape}, the film is {(height, width, 3)}")
+        width, height = _film(problem, dz_dy, sensor)
         sensor_obj = problem.scene.sensor(sensor)
         if problem.layout.active == 0:
             return np.zeros(problem.parameters.n)
@@ -102,19 +189,46 @@ class CameraHitMethod(GradientMethod):
         pixel_weights = to_device(dz_dy.reshape(-1, 3), torch.float64)
         active = np.zeros(problem.layout.active)
         for k in range(passes):
-            _, values = self._rays(problem, fields, sensor_obj, per_pass, derive_seed(seed, "camera", k))
-            rays = values.double().reshape(width * height, per_pass, -1, 3)
-            active += to_host(torch.einsum("xsac,xc->a", rays, pixel_weights)) / per_pass
+            p = self.trace(problem, fields, sensor_obj, per_pass, derive_seed(seed, "camera", k))
+            rays = self.sample(dr.ADMode.Forward, problem, p).double()
+            active += to_host(torch.einsum("xsac,xc->a", rays.reshape(width * height, per_pass, -1, 3),
+                                           pixel_weights)) / per_pass
         out = np.zeros(problem.parameters.n)
         out[list(problem.layout.scalars)] = active / passes
         return out
 
-    # ------------------------------------------------------------ camera pass
+    def adjoint_gradient(self, problem: Problem, fields: Fields, dz_dy: np.ndarray, *, spp: int, seed: int,
+                         sensor: int = 0) -> np.ndarray:
+        """``dz/dp`` ``(P,)`` by the backward mode, one pass per spp-pass over the rays (and
+        samples) of :meth:`images`: whatever ``P``, never a per-scalar derivative. Scalars outside
+        the problem's layout get zeros, as in the forward mode."""
+        self.check(fields)
+        width, height = _film(problem, dz_dy, sensor)
+        params, layout = problem.parameters, problem.layout
+        if layout.active == 0:
+            return np.zeros(params.n)
+        sensor_obj = problem.scene.sensor(sensor)
+        if not sensor_obj.film().rfilter().is_box_filter():
+            raise ValueError(f"{self.name} contracts dz/dy per ray for a texture job: it needs a box pixel filter")
+        passes, per_pass = passes_for(width * height, spp, RAYS_PER_PASS)
+        pixel = to_device(dz_dy.reshape(-1, 3), torch.float32)
+        total = np.zeros(params.n)
+        for k in range(passes):
+            p = self.trace(problem, fields, sensor_obj, per_pass, derive_seed(seed, "camera", k))
+            adjoint = p.scale * pixel.repeat_interleave(per_pass, 0) / (per_pass * passes)          # (K, 3)
+            total += to_host(self.sample(dr.ADMode.Backward, problem, p, adjoint))
+        if layout.active < params.n:
+            kept = np.zeros(params.n)
+            kept[list(layout.scalars)] = total[list(layout.scalars)]
+            total = kept
+        return total
 
-    @staticmethod
-    def _camera_hits(problem: Problem, sensor: mi.Sensor, spp: int, seed: int):
-        """The camera rays of one pass and where they land: ``(samples, sampler, emitter,
-        on_emitter, on_surface)``, detached; the same seed draws the same rays."""
+    # ------------------------------------------------------------ the camera pass and its estimate
+
+    def trace(self, problem: Problem, fields: Fields, sensor: mi.Sensor, spp: int, seed: int,
+              primal: bool = False) -> CameraPass:
+        """The camera rays of one pass, where they land and what the method reads there, detached;
+        the same seed draws the same rays and incident samples."""
         scene = problem.scene.scene
         samples, sampler = sample_camera(scene, sensor, spp, seed, problem.delta_depth)
         si, active = samples.chain.si, samples.chain.active
@@ -122,28 +236,110 @@ class CameraHitMethod(GradientMethod):
             emitter = si.emitter(scene, active)
             on_emitter = active & (emitter != None)
             on_surface = active & queryable(si, scene)
-        return samples, sampler, emitter, on_emitter, on_surface
+        reflected = self.reflected(problem, fields, si, on_surface, sampler, primal)
+        return CameraPass(samples, emitter, on_emitter, rgb(samples.weight * samples.chain.beta), reflected)
 
-    def _rays(self, problem: Problem, fields: Fields, sensor: mi.Sensor, spp: int,
-              seed: int) -> tuple[CameraSamples, torch.Tensor]:
-        """The per-ray derivatives ``dI`` of one pass: ``(K, A, 3)``, ``K = W·H·spp`` in Mitsuba's
-        pixel-major order."""
-        params, layout = problem.parameters, problem.layout
-        samples, sampler, emitter, on_emitter, on_surface = self._camera_hits(problem, sensor, spp, seed)
-        chain, si = samples.chain, samples.chain.si
-        d_reflected = self.differential_radiance(problem, fields, si, on_surface, sampler)  # (K, A, 3)
-        if problem.attach_emission:  # ∂E at camera hits on emitters (exact)
-            with params.tracking():
-                with dr.resume_grad(), dr.scoped_set_flag(dr.JitFlag.SymbolicCalls, False):
-                    emitted = dr.select(on_emitter, emitter.eval(si, on_emitter), 0.0)
-                d_emitted = torch.stack([rgb(g[0]) for g in params.forward([emitted], layout.scalars)], 1)
-            d_reflected = d_reflected + d_emitted
-        scale = rgb(samples.weight * chain.beta)[:, None, :]                                   # (K, 1, 3)
-        return samples, scale * d_reflected
+    def sample(self, mode: dr.ADMode, problem: Problem, p: CameraPass,
+               adjoint: torch.Tensor | None = None) -> torch.Tensor:
+        """The estimate of the pass ``p`` in ``mode`` (module docstring): ``I`` ``(K, 1, 3)``,
+        ``dI/dp`` ``(K, A, 3)`` or, with the per-ray adjoint weights ``adjoint`` ``(K, 3)``, ``dz/dp``
+        ``(P,)``, as tensors on the solver's device. A ray whose value or
+        derivative is not finite contributes nothing and is counted under ``camera``
+        (``Problem.sanitized``)."""
+        params, scalars = problem.parameters, list(problem.layout.scalars)
+        everything = mi.Bool(True)
+        if mode == dr.ADMode.Primal:
+            value, ok, _ = self._estimate(problem, p, everything)
+            out = p.scale[:, None, :] * rgb(value)[:, None, :]
+        elif mode == dr.ADMode.Forward:
+            rows = []
+            for group in _groups(scalars, params.has_textures):
+                with params.tracking():   # a texture's graph takes FORWARD_GROUP traversals at most
+                    value, ok, throughput = self._estimate(problem, p, everything)
+                    rows += params.forward([value], group)
+            derivative = torch.stack([rgb(row[0]) for row in rows], 1)                               # (K, A, 3)
+            ok = ok & _lanes(torch.isfinite(derivative).all(2).all(1))
+            field = p.reflected.field_part(ok, throughput)
+            out = p.scale[:, None, :] * (derivative if field is None else derivative + field)
+            out = torch.where(mask(ok)[:, None, None], out, 0.0)
+        else:
+            assert adjoint is not None, "the backward mode needs the adjoint weights"
+            weight: Color = color(adjoint)
+            with params.tracking():   # one graph per tracking block: a traversal clears the texture's edges
+                value, ok, throughput = self._estimate(problem, p, everything)
+                gradient = _backward(params, value * weight)
+            if not np.all(np.isfinite(gradient[scalars])):
+                ok = self._finite_rays(problem, p, ok, scalars) & dr.all(dr.isfinite(weight))
+                with params.tracking():
+                    value, ok, throughput = self._estimate(problem, p, ok)
+                    gradient = _backward(params, value * weight)
+            field = p.reflected.field_part(ok, throughput)
+            if field is not None:
+                gradient[scalars] += to_host(torch.einsum("kc,kac->a", adjoint.double(), field.double()))
+            problem.count_sanitized("camera", _count(~ok))
+            return to_device(gradient)
+        problem.count_sanitized("camera", _count(~ok))
+        return out
+
+    def _estimate(self, problem: Problem, p: CameraPass, keep: Bool) -> tuple[Color, Bool, Color | None]:
+        """``E(x) + L_r(x)`` per ray (the attached part of the estimate; ``E`` on the camera hits
+        on emitters, ``L_r`` on surfaces: no ray has both), ``(K,)`` ``mi.Color3f``, evaluated only
+        on the rays ``keep`` and zero on the others and where it is not finite; the rays kept; the
+        bounce's throughput ``T`` (None at the hit). ``E`` is attached when the planner kept
+        emission terms (``Problem.attach_emission``)."""
+        reflected, ok, throughput = p.reflected.attached(problem, keep)
+        si, on_emitter = p.samples.chain.si, p.on_emitter & keep
+        with dr.resume_grad(), dr.scoped_set_flag(dr.JitFlag.SymbolicCalls, False):
+            emitted = dr.select(on_emitter, p.emitter.eval(si, on_emitter), 0.0)
+            if not problem.attach_emission:
+                emitted = dr.detach(emitted)
+            return dr.select(ok, emitted + reflected, 0.0), ok, throughput
+
+    def _finite_rays(self, problem: Problem, p: CameraPass, ok: Bool, scalars: list[int]) -> Bool:
+        """The rays ``ok`` whose derivative along the active scalars is finite: one forward-mode
+        traversal along their sum. What the backward mode needs when its pass was not finite (a
+        reverse pass has no per-ray derivative to test, and a ``select`` alone would leak ``0 ·
+        inf`` into the texels the bad rays read: they are masked out of the redone pass)."""
+        with problem.parameters.tracking(), dr.resume_grad():
+            value, ok, _ = self._estimate(problem, p, ok)
+            derivative = problem.parameters.forward_units([value], [scalars])[0][0]
+        return ok & dr.all(dr.isfinite(derivative))
+
+
+def _film(problem: Problem, dz_dy: np.ndarray, sensor: int) -> tuple[int, int]:
+    width, height = problem.scene.resolution(sensor)
+    if dz_dy.shape != (height, width, 3):
+        raise ValueError(f"dz/dy has shape {dz_dy.shape}, the film is {(height, width, 3)}")
+    return width, height
+
+
+def _groups(scalars: list[int], texture: bool) -> list[list[int]]:
+    """The scalars in forward-mode groups: all at once, or :data:`FORWARD_GROUP` at a time when a
+    bitmap texture is read (Dr.Jit 1.5 crashes on a fourth traversal of such a graph)."""
+    size = FORWARD_GROUP if texture else max(1, len(scalars))
+    return [scalars[i:i + size] for i in range(0, len(scalars), size)]
+
+
+def _lanes(where: torch.Tensor) -> Bool:
+    """``(K,)`` bool tensor -> ``mi.Bool`` (on the device)."""
+    return floats(where.to(torch.float32)) > 0.5
+
+
+def _count(lanes: Bool) -> int:
+    return int(np.asarray(dr.count(lanes)).reshape(-1)[0])
+
+
+def _backward(params, weighted) -> np.ndarray:
+    """``∂/∂p Σ weighted`` over the lanes and channels of ``weighted`` (attached, under
+    ``tracking``), one reverse-mode pass: ``(P,)``; the parameters' gradients cleared after."""
+    with dr.resume_grad():
+        # no lane may depend on p (a texture only seen after two bounces): dz/dp is then 0
+        dr.backward(dr.sum(dr.sum(weighted, axis=None), axis=None), flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+    return params.gradient_vector()
 
 
 class NdrfLhs(CameraHitMethod):
-    """``∂L_r(x) = dL_theta(x, ω_o)`` at the camera hit (Eq. 11).
+    """``∂L_r(x) = dL_theta(x, ω_o)`` at the camera hit (Eq. 11); its primal reads ``L_phi(x)``.
 
     From a plan without ``dL_theta`` (no interreflection: one bounce with emission is exact, or the
     field forced off) it becomes that one-bounce estimate."""
@@ -160,9 +356,14 @@ class NdrfLhs(CameraHitMethod):
             return OneBounce(cls.name, radiance=bool(plan.radiance_field.value), differential=False)
         return cls()
 
-    def differential_radiance(self, problem, fields, si, where, sampler):
+    def reflected(self, problem, fields, si, where, sampler, primal):
+        if primal and fields.radiance is None:
+            raise ValueError(f"{self.name}'s primal reads L_phi at the camera hits: it needs a trained radiance field")
         with torch.no_grad():
-            return problem.layout.unpack(evaluate(fields.differential, field_query(si), mask(where)))
+            query, lanes = field_query(si), mask(where)
+            if primal:
+                return AtHit(color(evaluate(fields.radiance, query, lanes)), None)
+            return AtHit(None, problem.layout.unpack(evaluate(fields.differential, query, lanes)))
 
 
 class OneBounce(CameraHitMethod):
@@ -177,144 +378,19 @@ class OneBounce(CameraHitMethod):
         self.name = name  # type: ignore[misc]  # the public method this instance realises
         super().__init__(radiance=radiance, differential=differential)
 
-    def differential_radiance(self, problem, fields, si, where, sampler):
-        params, layout = problem.parameters, problem.layout
-        with params.tracking():
-            inc = sample_incident(problem.scene.scene, si, sampler, delta_depth=problem.delta_depth,
-                                  parameters=params, scalars=layout.scalars, attach_bsdf=problem.attach_bsdf,
-                                  attach_emission=problem.attach_emission, active=where)
-        problem.count_sanitized("camera", inc.sanitized)
-        out = torch.stack([rgb(g) for g in inc.d_emitted], 1)                 # (K, A, 3)
-        with torch.no_grad():
-            hit_surface = mask(inc.hit_surface)
-            hits = field_query(inc.hit)
-            if self.needs_radiance and inc.d_throughput is not None:
-                d_throughput = torch.stack([rgb(g) for g in inc.d_throughput], 1)
-                out = out + d_throughput * evaluate(fields.radiance, hits, hit_surface)[:, None, :]
-            if self.needs_differential:
-                dl = layout.unpack(evaluate(fields.differential, hits, hit_surface))
-                out = out + rgb(inc.throughput)[:, None, :] * dl
-        return out
-
-    # ------------------------------------------------------------ textures: one adjoint pass
-
-    def loss_gradient(self, problem, fields, dz_dy, *, spp, seed, sensor=0):
-        """A job with a texture: :meth:`adjoint_gradient` (module docstring); otherwise the
-        forward-mode contraction per ray (:meth:`CameraHitMethod.loss_gradient`)."""
-        if problem.parameters.has_textures and not self.needs_differential:
-            return self.adjoint_gradient(problem, fields, dz_dy, spp=spp, seed=seed, sensor=sensor)
-        return super().loss_gradient(problem, fields, dz_dy, spp=spp, seed=seed, sensor=sensor)
-
-    def adjoint_gradient(self, problem: Problem, fields: Fields, dz_dy: np.ndarray, *, spp: int, seed: int,
-                         sensor: int = 0) -> np.ndarray:
-        """``dz/dp`` ``(P,)`` by one Dr.Jit backward pass per spp-pass over the rays (and samples)
-        of :meth:`images`: whatever ``P``, never a per-scalar derivative. Scalars outside the
-        problem's layout get zeros, as on the forward-mode path."""
-        self.check(fields)
-        if self.needs_differential:
-            raise ValueError(f"{self.name} with dL_theta has no adjoint pass (its field has an output per scalar)")
-        width, height = problem.scene.resolution(sensor)
-        if dz_dy.shape != (height, width, 3):
-            raise ValueError(f"dz/dy has shape {dz_dy.shape}, the film is {(height, width, 3)}")
-        params, layout = problem.parameters, problem.layout
-        if layout.active == 0:
-            return np.zeros(params.n)
-        sensor_obj = problem.scene.sensor(sensor)
-        if not sensor_obj.film().rfilter().is_box_filter():
-            raise ValueError(f"{self.name} contracts dz/dy per ray for a texture job: it needs a box pixel filter")
-        passes, per_pass = passes_for(width * height, spp, RAYS_PER_PASS)
-        pixel = to_device(dz_dy.reshape(-1, 3), torch.float32)
-        total = np.zeros(params.n)
-        for k in range(passes):
-            total += self._adjoint_pass(problem, fields, sensor_obj, pixel, per_pass, passes,
-                                        derive_seed(seed, "camera", k))
-        if layout.active < params.n:
-            kept = np.zeros(params.n)
-            kept[list(layout.scalars)] = total[list(layout.scalars)]
-            total = kept
-        return total
-
-    def _adjoint_pass(self, problem: Problem, fields: Fields, sensor: mi.Sensor, pixel: torch.Tensor, spp: int,
-                      passes: int, seed: int) -> np.ndarray:
-        """One pass of :meth:`adjoint_gradient`: the samples of :meth:`_rays` (the same seed draws
-        the same camera rays and incident samples), the estimate attached, one backward pass:
-        ``(P,)``.
-
-        The forward-mode path's guard (``sample_incident``): a ray whose value or derivative is not
-        finite contributes nothing and is counted under ``camera``. A reverse pass has no per-ray
-        derivative to test, so a backward pass whose active entries are all finite is kept as is
-        (only rays with non-finite values are dropped, by ``select``); otherwise the rays whose
-        derivative along the active scalars is not finite (one forward-mode traversal) or whose
-        weight is not are found, and the pass is redone with them masked out of every evaluation
-        (a ``select`` alone would leak ``0 · inf`` into the texels they read)."""
-        scene, params, scalars = problem.scene.scene, problem.parameters, list(problem.layout.scalars)
-        samples, sampler, emitter, on_emitter, on_surface = self._camera_hits(problem, sensor, spp, seed)
+    def reflected(self, problem, fields, si, where, sampler, primal):
         with dr.suspend_grad():
-            geometry = sample_geometry(scene, samples.chain.si, sampler, delta_depth=problem.delta_depth,
-                                       active=on_surface)
+            geometry = sample_geometry(problem.scene.scene, si, sampler, delta_depth=problem.delta_depth,
+                                       active=where)
             geometry.schedule()
-        per_ray = rgb(samples.weight * samples.chain.beta) * pixel.repeat_interleave(spp, 0) / (spp * passes)
-        weight: Color = color(per_ray)                                                               # (K, 3)
-        radiance = None
-        if self.needs_radiance:
-            assert fields.radiance is not None  # self.check
-            with torch.no_grad():
-                radiance = color(evaluate(fields.radiance, field_query(geometry.hit), mask(geometry.hit_surface)))
-        hits = _CameraHits(samples.chain.si, emitter, on_emitter, geometry, radiance)
-        with params.tracking():   # one graph per tracking block: a traversal clears the texture's edges
-            value, ok = hits.estimate(problem, mi.Bool(True))
-            out = _backward(params, value * weight)
-        if not np.all(np.isfinite(out[scalars])):
-            with params.tracking(), dr.resume_grad():
-                value, ok = hits.estimate(problem, ok)
-                derivative = params.forward_units([value], [scalars])[0][0]
-            ok &= dr.all(dr.isfinite(derivative)) & dr.all(dr.isfinite(weight))
-            with params.tracking():
-                value, ok = hits.estimate(problem, ok)
-                out = _backward(params, value * weight)
-        problem.count_sanitized("camera", int(np.asarray(dr.count(~ok)).reshape(-1)[0]))
-        return out
-
-
-@dataclass
-class _CameraHits:
-    """What one adjoint pass evaluates attached, ``K`` lanes: the camera hits ``si`` (on an
-    emitter where ``on_emitter``), their incident samples ``geometry`` and the detached cache
-    ``radiance`` at ``x'`` (``mi.Color3f``; None for ``direct``)."""
-
-    si: MitsubaObject
-    emitter: MitsubaObject
-    on_emitter: Bool
-    geometry: IncidentGeometry
-    radiance: Color | None
-
-    def estimate(self, problem: Problem, keep: Bool) -> tuple[Color, Bool]:
-        """``E(x) + emitted + throughput · L_phi(x')`` per ray (``E`` on emitters, the rest on
-        surfaces: no ray has both), attached (under ``tracking``), ``(K,)`` ``mi.Color3f``,
-        evaluated only on the rays ``keep``; zero on the others and where the incident sample's
-        values are not finite. Returns it and the rays it kept."""
-        g = self.geometry
-        masked = replace(g, active_e=g.active_e & keep, active_b=g.active_b & keep,
-                         hits_emitter=g.hits_emitter & keep, hit_surface=g.hit_surface & keep)
-        emitted, throughput = evaluate_attached(problem.scene.scene, masked, attach_bsdf=problem.attach_bsdf,
-                                                attach_emission=problem.attach_emission)
-        with dr.resume_grad():
-            ok = keep & dr.all(dr.isfinite(dr.detach(emitted))) & dr.all(dr.isfinite(dr.detach(throughput)))
-            value = emitted if self.radiance is None else emitted + throughput * self.radiance
-            if problem.attach_emission:  # ∂E at camera hits on emitters (exact)
-                on_emitter = self.on_emitter & keep
-                with dr.scoped_set_flag(dr.JitFlag.SymbolicCalls, False):
-                    value = value + dr.select(on_emitter, self.emitter.eval(self.si, on_emitter), 0.0)
-            return dr.select(ok, value, 0.0), ok
-
-
-def _backward(params, weighted) -> np.ndarray:
-    """``∂/∂p Σ weighted`` over the lanes and channels of ``weighted`` (attached, under
-    ``tracking``), one reverse-mode pass: ``(P,)``; the parameters' gradients cleared after."""
-    with dr.resume_grad():
-        # no lane may depend on p (a texture only seen after two bounces): dz/dp is then 0
-        dr.backward(dr.sum(dr.sum(weighted, axis=None), axis=None), flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
-    return params.gradient_vector()
+        radiance = differential = None
+        with torch.no_grad():
+            hits, hit_surface = field_query(geometry.hit), mask(geometry.hit_surface)
+            if self.needs_radiance:
+                radiance = color(evaluate(fields.radiance, hits, hit_surface))
+            if self.needs_differential and not primal:
+                differential = problem.layout.unpack(evaluate(fields.differential, hits, hit_surface))
+        return Bounce(geometry, radiance, differential)
 
 
 class NdrfRhs(OneBounce):

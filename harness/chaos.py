@@ -27,7 +27,7 @@ from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
-from tests.support.cluster import Redis, small_job, start_api, start_worker, wait_until
+from harness.cluster import Redis, small_job, start_api, start_worker, wait_until
 
 log = logging.getLogger(__name__)
 FINISHED = {"succeeded", "failed", "canceled"}
@@ -160,7 +160,7 @@ class Chaos:
         started = time.monotonic()
         ids = []
         for i in range(config.jobs):
-            status, body = self.api.request("POST", "/v1/jobs", small_job(config.iterations, seed=i + 1))
+            status, _, body = self.api.json("POST", "/v1/jobs", small_job(iterations=config.iterations, seed=i + 1))
             assert status == 202, body
             ids.append(body["id"])
         next_kill = started + config.kill_every

@@ -1,5 +1,5 @@
 """A real S3 HTTP endpoint on loopback for the tests and the store benchmark: moto's server mode,
-in a child process (``python -m tests.support.s3server``), so the API, the workers and the test process
+in a child process (``python -m harness.s3server``), so the API, the workers and the test process
 all talk to it over HTTP as they would to a bucket on another machine.
 
 Moto (5.2) honours ``If-None-Match: *`` and ``If-Match: <etag>`` on PutObject, but checks the
@@ -20,7 +20,7 @@ import threading
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]  # the checkout
+ROOT = Path(__file__).resolve().parents[1]  # the checkout
 ACCESS_KEY, SECRET_KEY, REGION = "ndrf-test", "ndrf-test-secret", "us-east-1"
 
 
@@ -62,7 +62,7 @@ def serve(port: int, buckets: list[str], stock: bool) -> None:
 
 
 class S3Server:
-    """``python -m tests.support.s3server`` as a child process; ``env(bucket, prefix)`` is what a process
+    """``python -m harness.s3server`` as a child process; ``env(bucket, prefix)`` is what a process
     of the service needs to use it (``NDRF_STORE``, ``NDRF_S3_ENDPOINT``, AWS credentials)."""
 
     def __init__(self, buckets: tuple[str, ...] = ("ndrf",), stock: bool = False):
@@ -71,7 +71,7 @@ class S3Server:
         self.endpoint = ""
 
     def start(self, timeout: float = 60.0) -> S3Server:
-        args = [sys.executable, "-m", "tests.support.s3server", "--bucket", *self.buckets,
+        args = [sys.executable, "-m", "harness.s3server", "--bucket", *self.buckets,
                 *(["--stock"] if self.stock else [])]
         self.proc = subprocess.Popen(args, cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                      stderr=subprocess.DEVNULL, text=True)

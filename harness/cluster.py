@@ -1,6 +1,7 @@
-"""A service on this machine for the fault tests and the fault and load benchmarks: a throw-away ``redis-server``
+"""A service on this machine for the service tests and the benchmarks: a throw-away ``redis-server``
 (no persistence, so a restart loses everything), ``ndrf serve`` and ``ndrf worker`` processes
-sharing one store, each with its output in a log file. Loopback only."""
+sharing one store, each with its output in a log file, a JSON client of the API, and a job of a few
+seconds. Loopback only."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]  # the checkout
+ROOT = Path(__file__).resolve().parents[1]  # the checkout
 
 
 def free_port() -> int:
@@ -109,43 +110,56 @@ class Process:
         return "\n".join(self.log.read_text(errors="replace").splitlines()[-n:])
 
 
-class Client:
-    """A tiny JSON client of the API (urllib: no extra dependency)."""
+class Api:
+    """A JSON client of the API (urllib: no extra dependency), with the caller's key when given."""
 
     def __init__(self, base: str, key: str | None = None):
         self.base, self.key = base, key
 
-    def request(self, method: str, path: str, body=None, timeout: float = 60):
-        data = json.dumps(body).encode() if body is not None else None
+    def request(self, method: str, path: str, body=None, headers=None, raw: bytes | None = None,
+                timeout: float = 60) -> tuple[int, dict, bytes]:
+        """``(status, headers, body bytes)``; an HTTP error status is returned, not raised."""
+        data = raw if raw is not None else (json.dumps(body).encode() if body is not None else None)
         req = urllib.request.Request(self.base + path, data=data, method=method,
-                                     headers={"Content-Type": "application/json"})
+                                     headers={"Content-Type": "application/json", **(headers or {})})
         if self.key:
             req.add_header("Authorization", f"Bearer {self.key}")
         try:
             with urllib.request.urlopen(req, timeout=timeout) as resp:
-                raw = resp.read()
-                return resp.status, json.loads(raw) if raw else None
+                return resp.status, dict(resp.headers), resp.read()
         except urllib.error.HTTPError as err:
-            raw = err.read()
-            return err.code, json.loads(raw) if raw else None
+            return err.code, dict(err.headers), err.read()
+
+    def json(self, method: str, path: str, body=None, headers=None, timeout: float = 60):
+        """``(status, headers, parsed body or None)``."""
+        status, head, data = self.request(method, path, body, headers, timeout=timeout)
+        return status, head, (json.loads(data) if data else None)
+
+    def wait_status(self, job_id: str, statuses, timeout: float):
+        def done():
+            _, _, job = self.json("GET", f"/v1/jobs/{job_id}")
+            return job if job and job["status"] in statuses else None
+        return wait_until(done, timeout, 0.2, what=f"job {job_id} in {statuses}")
 
 
 def start_api(folder: Path, env: dict[str, str], port: int | None = None, prefix: list[str] | None = None,
-              name: str = "api", extra: list[str] | None = None) -> tuple[Process, Client]:
+              name: str = "api", extra: list[str] | None = None) -> tuple[Process, Api]:
+    """``ndrf serve`` on ``port`` (a free one by default), once it answers ``/healthz``; its client
+    uses the first key of ``NDRF_API_KEYS``."""
     port = port or free_port()
     proc = Process(["serve", "--port", str(port), *(extra or [])], env, folder / f"{name}-{port}.log", prefix)
-    client = Client(f"http://127.0.0.1:{port}", env.get("NDRF_API_KEYS", "").split(",")[0] or None)
+    api = Api(f"http://127.0.0.1:{port}", env.get("NDRF_API_KEYS", "").split(",")[0] or None)
 
     def up() -> bool:
         if not proc.alive():
             raise RuntimeError(f"ndrf serve exited:\n{proc.tail()}")
         try:
-            return client.request("GET", "/healthz", timeout=5)[0] == 200
+            return api.request("GET", "/healthz", timeout=5)[0] == 200
         except OSError:
             return False
 
     wait_until(up, 90, 0.2, what="ndrf serve")
-    return proc, client
+    return proc, api
 
 
 def start_worker(folder: Path, env: dict[str, str], name: str, prefix: list[str] | None = None,
@@ -153,14 +167,14 @@ def start_worker(folder: Path, env: dict[str, str], name: str, prefix: list[str]
     return Process(["-v", "worker", "--name", name], env, folder / f"{name}.log", prefix, nice=nice)
 
 
-def small_job(iterations: int = 20, seed: int = 1, **extra) -> dict:
+def small_job(method: str = "ndrf-lhs", iterations: int = 6, seed: int = 1, **extra) -> dict:
     """A job of a few seconds per attempt: Cornell box, one albedo, 16x16, checkpoint every iteration."""
     job = {
-        "name": f"bench {seed}",
+        "name": "small job",
         "scene": {"builtin": "cornell-box"},
         "parameters": [{"key": "red.reflectance.value", "init": [0.3, 0.3, 0.3]}],
         "targets": {"synthetic": {"values": {"red.reflectance.value": [0.57, 0.04, 0.04]}, "spp": 16}},
-        "method": "ndrf-lhs",
+        "method": method,
         "iterations": iterations,
         "render": {"spp": 4, "gradient_spp": 4, "resolution": [16, 16]},
         "training": {"residual_points": 256, "incident_samples": 4, "warmup_steps": 10, "steps_per_iteration": 2},
