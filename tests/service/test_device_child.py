@@ -14,7 +14,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from services.settings import Settings, get_settings
-from tests.support.service import wait_until
+from harness.cluster import wait_until
 
 
 def test_a_sandboxed_child_runs_on_the_device_asked_for():
