@@ -3,7 +3,8 @@
 Parts (all by default, in this order): ``accuracy`` (gradient error vs wall time per method on
 cornell-box, hidden-object and glossy-box), ``depth`` (iteration cost vs path length, prb vs
 ndrf-rhs), ``scaling`` (training-step time and memory vs number of scalars), ``e2e`` (parameter
-error vs time of whole jobs on the hidden object), ``planner`` (what the effect plan saves). Results, tables and plots go to
+error vs time of whole jobs on the hidden object), ``effects`` (what the chosen effects save). Results, tables and plots go
+to
 ``bench/results/`` (``--quick`` writes ``bench/results/quick/``), with the machine described.
 """
 
@@ -15,7 +16,7 @@ import logging
 import time
 from pathlib import Path
 
-PARTS = ("accuracy", "depth", "scaling", "planner", "e2e")
+PARTS = ("accuracy", "depth", "scaling", "effects", "e2e")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -33,10 +34,10 @@ def main(argv: list[str] | None = None) -> None:
     out = args.out or Path(__file__).parent / "results" / ("quick" if args.quick else "")
     out.mkdir(parents=True, exist_ok=True)
 
-    from bench import accuracy_time, depth, end_to_end, planner_savings, report, scaling
+    from bench import accuracy_time, depth, effects_savings, end_to_end, report, scaling
     from bench.common import machine, markdown_table
 
-    modules = {"accuracy": accuracy_time, "depth": depth, "scaling": scaling, "planner": planner_savings,
+    modules = {"accuracy": accuracy_time, "depth": depth, "scaling": scaling, "effects": effects_savings,
                "e2e": end_to_end}
     results, seconds = {"machine": machine(), "quick": args.quick}, {}
     for part in parts:
@@ -63,10 +64,10 @@ def main(argv: list[str] | None = None) -> None:
         report.scaling_plot(results["scaling"], out / "scaling.png")
         sections += ["## Training cost against the number of optimized scalars", "", "![scaling](scaling.png)", "",
                      report.scaling_table(results["scaling"]), ""]
-    if "planner" in results:
+    if "effects" in results:
         rows = [[r["case"], r["unit"], r["planned"], r["everything on"], f"{100 * r['saving']:.0f}%"]
-                for r in results["planner"]["rows"]]
-        sections += ["## What the effect plan saves", "",
+                for r in results["effects"]["rows"]]
+        sections += ["## What the chosen effects save", "",
                      markdown_table(["case", "unit", "planned", "everything on", "saving"], rows), ""]
     if "e2e" in results:
         report.e2e_plot(results["e2e"], out / "e2e.png")

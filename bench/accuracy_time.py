@@ -37,14 +37,15 @@ def run(quick: bool) -> dict:
         log.info("accuracy vs time: %s", scene)
         prob = problem(scene, [key])
         with timed() as t_ref:
-            reference = make_method("prb", None, PathDepth(12, None)).images(prob, Fields(), spp=reference_spp, seed=999)
+            reference = make_method("prb", None, PathDepth(12, None)).gradient_images(
+                prob, Fields(), spp=reference_spp, seed=999)
         points = []
         for name in ("prb", "direct"):
             method = make_method(name)
-            method.images(prob, Fields(), spp=1, seed=0)          # compile once, outside the clock
+            method.gradient_images(prob, Fields(), spp=1, seed=0)          # compile once, outside the clock
             for spp in sample_spp:
                 with timed() as t:
-                    g = method.images(prob, Fields(), spp=spp, seed=spp)
+                    g = method.gradient_images(prob, Fields(), spp=spp, seed=spp)
                 points.append({"method": name, "spp": spp, "steps": 0, "seconds": t.seconds,
                                "error": relative_error(g, reference)})
         planned = problem(scene, [key], method="ndrf-rhs")
@@ -59,11 +60,11 @@ def run(quick: bool) -> dict:
             done = steps
             fields = trainer.queried()
             for name, spps in query_spp.items():
-                method = make_method(name, planned.plan)
+                method = make_method(name, planned.effects)
                 training = spent["radiance"] if name == "radiance-cache" else spent["both"]
                 for spp in spps:
                     with timed() as t:
-                        g = method.images(planned, fields, spp=spp, seed=spp)
+                        g = method.gradient_images(planned, fields, spp=spp, seed=spp)
                     points.append({"method": name, "spp": spp, "steps": steps, "seconds": training + t.seconds,
                                    "training_seconds": training, "error": relative_error(g, reference)})
         out[scene] = {"key": key, "shows": what, "reference_spp": reference_spp,

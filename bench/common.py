@@ -81,15 +81,15 @@ def problem(scene: str, keys: list[str], resolution=(64, 64), method: str | None
     use_mitsuba(), use_torch()
     from services.solver.estimators.methods import method_class
     from services.solver.estimators.problem import Problem
+    from services.solver.scene.effects import choose_effects
     from services.solver.scene.facts import probe_scene
     from services.solver.scene.load import load_scene
     from services.solver.scene.params import ParameterSet
-    from services.solver.scene.planner import plan_effects
 
     loaded = load_scene(builtin=scene, resolution=resolution)
     prob = Problem(loaded, ParameterSet(loaded.params, keys))
     if method is not None:
-        prob.apply_plan(plan_effects(probe_scene(loaded, prob.parameters), method, method_class(method).uses))
+        prob.simulate(choose_effects(probe_scene(loaded, prob.parameters), method, method_class(method).uses))
     return prob
 
 

@@ -49,7 +49,8 @@ def main() -> None:
     scene = load_scene(builtin=args.scene, resolution=(64, 64))
     problem = Problem(scene, ParameterSet(scene.params, [args.key]))
     t = time.perf_counter()
-    reference = make_method("prb", None, PathDepth(12, None)).images(problem, Fields(), spp=args.reference_spp, seed=12345)
+    reference = make_method("prb", None, PathDepth(12, None)).gradient_images(
+        problem, Fields(), spp=args.reference_spp, seed=12345)
     reference_seconds = time.perf_counter() - t
 
     trainer = FieldTrainer(problem, TrainingConfig(), radiance=True, differential=True, seed=args.seed)
@@ -68,7 +69,7 @@ def main() -> None:
     for name, method_name, used in queries:
         method = make_method(method_name)
         t = time.perf_counter()
-        images = method.images(problem, used, spp=args.query_spp, seed=1)
+        images = method.gradient_images(problem, used, spp=args.query_spp, seed=1)
         query = time.perf_counter() - t
         if name == "direct":
             direct = images

@@ -35,26 +35,26 @@ def run(quick: bool) -> dict:
     depths = [2, 4, 8, 16] if quick else [2, 3, 4, 6, 8, 12, 16]
     spp, repeats = 16, (2 if quick else 3)
     prob = problem("hidden-object", ["hidden.reflectance.value"])
-    reference = Prb(depth=PathDepth(64, None)).images(prob, Fields(), spp=256 if quick else 1024, seed=5)
+    reference = Prb(depth=PathDepth(64, None)).gradient_images(prob, Fields(), spp=256 if quick else 1024, seed=5)
     rows = []
     for depth in depths:
         method = Prb(depth=PathDepth(depth, None))
-        method.images(prob, Fields(), spp=1, seed=0)           # compile outside the clock
+        method.gradient_images(prob, Fields(), spp=1, seed=0)           # compile outside the clock
         with timed() as t:
             for r in range(repeats):
-                g = method.images(prob, Fields(), spp=spp, seed=r)
+                g = method.gradient_images(prob, Fields(), spp=spp, seed=r)
         rows.append({"method": "prb", "depth": depth, "seconds": t.seconds / repeats, **_errors(g, reference)})
     planned = problem("hidden-object", ["hidden.reflectance.value"], method="ndrf-rhs")
     config = TrainingConfig()
     trainer = FieldTrainer(planned, config, radiance=True, differential=True, seed=0)
     trainer.train(150 if quick else 600)
-    ndrf = make_method("ndrf-rhs", planned.plan)
+    ndrf = make_method("ndrf-rhs", planned.effects)
     fields = trainer.queried()
-    ndrf.images(planned, fields, spp=1, seed=0)
+    ndrf.gradient_images(planned, fields, spp=1, seed=0)
     with timed() as t:
         for r in range(repeats):
             trainer.train(config.steps_per_iteration)
-            g = ndrf.images(planned, fields, spp=spp, seed=r)
+            g = ndrf.gradient_images(planned, fields, spp=spp, seed=r)
     per_iteration = t.seconds / repeats
     rows.append({"method": "ndrf-rhs", "depth": None, "seconds": per_iteration, **_errors(g, reference),
                  "note": f"{config.steps_per_iteration} training steps + a {spp}-spp query"})

@@ -35,7 +35,7 @@ def images_of(prepared, method, fields, spp: int, seed: int) -> np.ndarray:
     """``(S·P, H, W, 3)``: every sensor's gradient images, stacked."""
     from services.solver.seeds import derive_seed
 
-    return np.concatenate([method.images(prepared.problem, fields, spp=spp, seed=derive_seed(seed, "gradient", s),
+    return np.concatenate([method.gradient_images(prepared.problem, fields, spp=spp, seed=derive_seed(seed, "gradient", s),
                                          sensor=s) for s in sorted(prepared.targets)])
 
 
@@ -58,7 +58,7 @@ def run(job: dict, method_name: str, spps: list[int], seeds: list[int], referenc
             # the mean of two independent halves: its error is half their distance (in expectation)
             out["reference_noise"] = relative_error(halves[0], halves[1]) / 2
             log.info("reference: %.1f s, noise %.3f", out["reference_seconds"], out["reference_noise"])
-        method = make_method(method_name, prepared.problem.plan, prepared.depth)
+        method = make_method(method_name, prepared.problem.effects, prepared.depth)
         t = time.perf_counter()
         trainer = trainer_for(prepared.problem, method, spec.training, spec.seed)
         if trainer is not None:

@@ -28,15 +28,15 @@ def measure(pool: bool, steps: int) -> dict:
     use_mitsuba(), use_torch()
     from services.solver.estimators.methods import method_class
     from services.solver.estimators.problem import Problem
+    from services.solver.scene.effects import choose_effects
     from services.solver.scene.facts import probe_scene
     from services.solver.scene.load import load_scene
     from services.solver.scene.params import ParameterSet
-    from services.solver.scene.planner import plan_effects
     from services.solver.training.trainer import FieldTrainer
 
     scene = load_scene(builtin="cornell-box", resolution=(64, 64))
     problem = Problem(scene, ParameterSet(scene.params, ["red.reflectance.value"]))
-    problem.apply_plan(plan_effects(probe_scene(scene, problem.parameters), "ndrf-lhs", method_class("ndrf-lhs").uses))
+    problem.simulate(choose_effects(probe_scene(scene, problem.parameters), "ndrf-lhs", method_class("ndrf-lhs").uses))
     config = TrainingConfig.model_validate({"pool": {"enabled": pool}})
     trainer = FieldTrainer(problem, config, radiance=True, differential=True, seed=0)
     trainer.train(5)

@@ -41,15 +41,15 @@ def measure(side: int, steps: int) -> dict:
     from schemas.solver import TrainingConfig
     from services.solver.estimators.methods import method_class
     from services.solver.estimators.problem import Problem
+    from services.solver.scene.effects import choose_effects
     from services.solver.scene.facts import probe_scene
     from services.solver.scene.load import load_scene
     from services.solver.scene.params import ParameterSet
-    from services.solver.scene.planner import plan_effects
     from services.solver.training.trainer import FieldTrainer
 
     scene = load_scene(mitsuba_dict=textured_box(side), resolution=(64, 64))
     prob = Problem(scene, ParameterSet(scene.params, ["back.bsdf.reflectance.data"]))
-    prob.apply_plan(plan_effects(probe_scene(scene, prob.parameters), "ndrf-rhs", method_class("ndrf-rhs").uses))
+    prob.simulate(choose_effects(probe_scene(scene, prob.parameters), "ndrf-rhs", method_class("ndrf-rhs").uses))
     trainer = FieldTrainer(prob, TrainingConfig(), radiance=True, differential=True, seed=0)
     trainer.train(5)                                          # compile and warm up outside the clock
     start = time.perf_counter()

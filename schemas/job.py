@@ -175,7 +175,7 @@ Switch = Literal["auto", "on", "off"]
 
 
 class EffectOverrides(_Strict):
-    """Override the effect planner, which otherwise simulates only what the scene and the chosen
+    """Override `choose_effects`, which otherwise simulates only what the scene and the chosen
     parameters can produce (the plan, with a reason per decision, is part of the job's record).
     Forcing off an effect the plan needs biases the gradients; the plan says so in a warning."""
 
@@ -321,7 +321,7 @@ class JobSpec(_Strict):
     loss: Literal["l2", "l1"] = Field("l2", description="Image loss z(y): mean squared or mean absolute error.")
     render: RenderSpec = Field(default_factory=RenderSpec, description="Rendering settings.")
     training: TrainingConfig = Field(default_factory=TrainingConfig, description="Training of L_phi and dL_theta.")
-    effects: EffectOverrides = Field(default_factory=EffectOverrides, description="Overrides of the effect planner.")
+    effects: EffectOverrides = Field(default_factory=EffectOverrides, description="Overrides of `choose_effects`.")
     textures: TextureSettings = Field(default_factory=TextureSettings,
                                       description="Regularization of texture parameters (a bitmap's data).")
     stop: StopSettings = Field(default_factory=StopSettings,

@@ -1,7 +1,7 @@
 """The gradient methods, by their public names: the one list every layer reads.
 
 The solver binds one class to each member (``services.solver.estimators.methods``, which fails at
-import if a member has no class); the job schema, the CLI, the planner, the tests and the bench
+import if a member has no class); the job schema, the CLI, `choose_effects`, the tests and the bench
 iterate over :class:`Method`.
 """
 

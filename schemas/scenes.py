@@ -10,7 +10,7 @@ BUILTIN_SCENES: dict[str, str] = {
     "mirror-box": "Cornell box whose back wall is a perfect mirror, with a blue sphere.",
     "glossy-box": "Cornell box with a rough gold sphere (GGX roughness 0.15) reflecting the walls.",
     "closet-box": "Cornell box with a closed cube hiding a red sphere: no camera path reaches the sphere, "
-                  "so the planner drops its parameters.",
+                  "so `choose_effects` drops its parameters.",
     "room-closed-8": "Closed room (walls.reflectance.value) with a sphere in sight (ball.reflectance.value), seen "
                      "by 8 cameras of 128x128: multi-view, long light paths.",
     "room-open-8": "The same room without its front wall (light escapes): multi-view, shorter paths.",

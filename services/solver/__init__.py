@@ -8,7 +8,7 @@ through the :class:`services.solver.optimize.report.RunReporter` its host gives 
 Sub-packages, in the order one job's data flows through them:
 
 ``scene``       load a scene (built-in, XML file, dict), its optimizable parameters, the probe of
-                what it can produce and the effect planner
+                what it can produce and `choose_effects`
 ``sampling``    Monte Carlo sampling on Mitsuba/Dr.Jit: residual points, incident directions (MIS),
                 delta chains, camera rays and film splatting
 ``fields``      the two neural fields (PyTorch): ``L_phi`` and ``dL_theta``

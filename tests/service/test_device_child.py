@@ -13,8 +13,8 @@ import resource
 import pytest
 from fastapi.testclient import TestClient
 
-from services.settings import Settings, get_settings
 from harness.cluster import wait_until
+from services.settings import Settings, get_settings
 
 
 def test_a_sandboxed_child_runs_on_the_device_asked_for():

@@ -54,9 +54,9 @@ def cornell(mi):
     from services.solver.estimators.methods import Fields, make_method
 
     problem = _setup("cornell-box", "red.reflectance.value")
-    reference = make_method("prb", None, PathDepth(12, None)).images(problem, Fields(), spp=4096, seed=12345)
+    reference = make_method("prb", None, PathDepth(12, None)).gradient_images(problem, Fields(), spp=4096, seed=12345)
     fields = _trained(problem, STEPS)
-    images = {name: make_method(name).images(problem, Fields() if name == "direct" else fields, spp=16, seed=1)
+    images = {name: make_method(name).gradient_images(problem, Fields() if name == "direct" else fields, spp=16, seed=1)
               for name in ("ndrf-lhs", "ndrf-rhs", "radiance-cache", "direct")}
     return reference, images
 

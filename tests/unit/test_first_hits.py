@@ -67,7 +67,7 @@ def test_the_per_ray_contraction_equals_the_contraction_of_the_images(mi, rfilte
 
     problem, cache, _, differential = _setup(mi, rfilter)
     dz_dy = np.random.default_rng(0).normal(size=(16, 16, 3)).astype(np.float32)
-    images = cache.images(0, differential)
+    images = cache.gradient_images(0, differential)
     assert images.shape == (3, 16, 16, 3)
     assert cache.loss_gradient(0, differential, dz_dy) == pytest.approx(contract(images, dz_dy), rel=1e-5, abs=1e-9)
 
@@ -78,8 +78,8 @@ def test_cached_lhs_images_match_fresh_camera_samples(mi):
     from services.solver.estimators.methods import Fields, make_method
 
     problem, cache, radiance, differential = _setup(mi, spp=16)
-    cached = cache.images(0, differential)
-    fresh = make_method("ndrf-lhs").images(problem, Fields(radiance, differential), spp=16, seed=9)
+    cached = cache.gradient_images(0, differential)
+    fresh = make_method("ndrf-lhs").gradient_images(problem, Fields(radiance, differential), spp=16, seed=9)
     assert cached.sum((1, 2)) == pytest.approx(fresh.sum((1, 2)), rel=0.02, abs=0.5)
 
 

@@ -25,15 +25,15 @@ def setting(mi):
     from schemas.solver import TrainingConfig
     from services.solver.estimators.methods import method_class
     from services.solver.estimators.problem import Problem
+    from services.solver.scene.effects import choose_effects
     from services.solver.scene.facts import probe_scene
     from services.solver.scene.load import load_scene
     from services.solver.scene.params import ParameterSet
-    from services.solver.scene.planner import plan_effects
     from services.solver.training.trainer import FieldTrainer
 
     scene = load_scene(builtin="cornell-box", resolution=(12, 10))
     problem = Problem(scene, ParameterSet(scene.params, ["red.reflectance.value", "light.emitter.radiance.value"]))
-    problem.apply_plan(plan_effects(probe_scene(scene, problem.parameters, seed=1), "ndrf-rhs",
+    problem.simulate(choose_effects(probe_scene(scene, problem.parameters, seed=1), "ndrf-rhs",
                                     method_class("ndrf-rhs").uses))
     trainer = FieldTrainer(problem, TrainingConfig(residual_points=512, incident_samples=4), radiance=True,
                            differential=True, seed=0)
@@ -48,10 +48,10 @@ def test_loss_gradient_is_the_contraction_of_the_images(setting, name):
     from services.solver.training.trainer import fields_of
 
     problem, trainer, dz_dy = setting
-    method = make_method(name, problem.plan, PathDepth(6, None))
+    method = make_method(name, problem.effects, PathDepth(6, None))
     fields = fields_of(trainer)
     direct = method.loss_gradient(problem, fields, dz_dy, spp=3, seed=11)
-    contracted = contract(method.images(problem, fields, spp=3, seed=11), dz_dy)
+    contracted = contract(method.gradient_images(problem, fields, spp=3, seed=11), dz_dy)
     assert direct.shape == (problem.parameters.n,) and np.abs(contracted).max() > 0
     np.testing.assert_allclose(direct, contracted, rtol=2e-4, atol=1e-6 * np.abs(contracted).max())
 
@@ -60,11 +60,11 @@ def test_a_plan_without_the_differential_field_makes_ndrf_lhs_a_one_bounce_estim
     from dataclasses import replace
 
     from services.solver.estimators.methods import OneBounce, make_method
-    from services.solver.scene.planner import Decision
+    from services.solver.scene.effects import EffectChoice
 
     problem, _, _ = setting
-    plan = replace(problem.plan, differential_field=Decision(False, "test"))
-    method = make_method("ndrf-lhs", plan)
+    effects = replace(problem.effects, differential_field=EffectChoice(False, "test"))
+    method = make_method("ndrf-lhs", effects)
     assert isinstance(method, OneBounce) and method.name == Method.NDRF_LHS and not method.needs_differential
 
 
@@ -79,7 +79,7 @@ def test_prb_fused_step_agrees_with_separate_candidate_and_adjoint_passes(settin
     problem, _, _ = setting
     target = render(problem, spp=512, seed=99, depth=PathDepth(6, None)) * 1.3       # a target brighter than the scene
     loss = lambda y: image_loss("l2", y, target)
-    prb = make_method("prb", problem.plan, PathDepth(6, None))
+    prb = make_method("prb", problem.effects, PathDepth(6, None))
     fused = prb.candidate_and_gradient(problem, None, loss, spp=2048, gradient_spp=2048, seed=3, depth=PathDepth(6, None))
     separate = GradientMethod.candidate_and_gradient(prb, problem, None, loss, spp=2048, gradient_spp=2048, seed=4,
                                                      depth=PathDepth(6, None))
@@ -102,7 +102,7 @@ def test_prb_gradient_images_of_a_texture_parameter(mi):
     problem = Problem(scene, ParameterSet(scene.params, ["back.bsdf.reflectance.data"]))
     prb = make_method("prb", None, PathDepth(4, None))
     dz_dy = np.random.default_rng(1).normal(size=(10, 12, 3)).astype(np.float32)
-    images = prb.images(problem, Fields(), spp=8, seed=2)
+    images = prb.gradient_images(problem, Fields(), spp=8, seed=2)
     assert images.shape == (6, 10, 12, 3) and np.all(np.abs(images).reshape(6, -1).sum(1) > 0)
     np.testing.assert_allclose(prb.loss_gradient(problem, Fields(), dz_dy, spp=8, seed=2), contract(images, dz_dy),
                                rtol=1e-3, atol=1e-5 * np.abs(contract(images, dz_dy)).max())

@@ -81,7 +81,7 @@ def test_frozen_jacobian_images_equal_traced_ones_as_the_parameters_move(mi):
     images = []
     for k, x in enumerate([np.full(6, 0.5), np.full(6, 0.5), np.array([0.9, 0.8, 0.7, 0.8, 0.2, 0.1])]):
         problem.parameters.assign(x)
-        pair = [prb.images(problem, None, spp=2, seed=7 + k, sensor=1) for prb in (frozen, traced)]
+        pair = [prb.gradient_images(problem, None, spp=2, seed=7 + k, sensor=1) for prb in (frozen, traced)]
         np.testing.assert_allclose(pair[0], pair[1], **TOLERANCE)
         images.append(pair[0])
     assert frozen._frozen_tangent.n_recordings >= 2    # two channel groups (walls, ball) at least

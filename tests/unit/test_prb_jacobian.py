@@ -44,8 +44,8 @@ def test_grouped_forward_renders_equal_one_render_per_scalar(mi):
     from services.solver.estimators.methods.prb import Prb
 
     prb = Prb(depth=PathDepth(8, None))
-    grouped = prb.images(_problem(merge=True), Fields(), spp=4, seed=11)
-    single = prb.images(_problem(merge=False), Fields(), spp=4, seed=11)
+    grouped = prb.gradient_images(_problem(merge=True), Fields(), spp=4, seed=11)
+    single = prb.gradient_images(_problem(merge=False), Fields(), spp=4, seed=11)
     assert grouped.shape == single.shape == (6, 16, 16, 3)
     assert np.abs(single).sum() > 0
     np.testing.assert_allclose(grouped, single, rtol=1e-5, atol=1e-7)

@@ -22,8 +22,8 @@ from services.solver.optimize.resolve import (
     OPEN_START,
     resolve,
 )
-from services.solver.scene.planner import Decision as Switch
-from services.solver.scene.planner import EffectPlan, ScalarPlan
+from services.solver.scene.effects import EffectChoice as Switch
+from services.solver.scene.effects import Effects, ScalarEffect
 
 
 def _spec(**extra) -> JobSpec:
@@ -59,16 +59,16 @@ class Measures:
 
 @pytest.fixture
 def effects_from_bounces(monkeypatch):
-    """plan_effects faked: every scalar active in all channels, first reached after the bounces
+    """choose_effects faked: every scalar active in all channels, first reached after the bounces
     the Measures' ``first_bounces`` give (None: unreached)."""
     import services.solver.optimize.resolve as module
 
     def plan(bounces, *args, **kwargs):
         on = Switch(True, "")
-        return EffectPlan(on, on, on, on, Switch(0, ""), [
-            ScalarPlan(f"s{i}", b is not None, (0, 1, 2), "", b) for i, b in enumerate(bounces)])
+        return Effects(on, on, on, on, Switch(0, ""), [
+            ScalarEffect(f"s{i}", b is not None, (0, 1, 2), "", b) for i, b in enumerate(bounces)])
 
-    monkeypatch.setattr(module, "plan_effects", plan)
+    monkeypatch.setattr(module, "choose_effects", plan)
 
 
 def choose(spec: JobSpec, sizes, sensors: int, measures: Measures | None = None) -> Recipe:

@@ -168,9 +168,10 @@ def test_gradients_and_residuals_stay_finite(metal_problem, alpha, albedo, eleva
     assert torch_finite(radiance_rhs(batch, None)) and torch_finite(differential_rhs(batch, None, None, problem.layout))
     assert batch.sanitized <= 0.01 * 256 * 4, batch.sanitized          # the guard is not hiding a systematic NaN
     problem.sanitized.clear()
-    assert np.all(np.isfinite(make_method("direct").images(problem, Fields(), spp=2, seed=1)))
+    assert np.all(np.isfinite(make_method("direct").gradient_images(problem, Fields(), spp=2, seed=1)))
     assert problem.sanitized.get("camera", 0) <= 0.01 * 12 * 12 * 2, problem.sanitized
-    assert np.all(np.isfinite(make_method("prb", None, PathDepth(4, None)).images(problem, Fields(), spp=2, seed=1)))
+    prb = make_method("prb", None, PathDepth(4, None))
+    assert np.all(np.isfinite(prb.gradient_images(problem, Fields(), spp=2, seed=1)))
 
 
 def torch_finite(t) -> bool:

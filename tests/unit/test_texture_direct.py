@@ -56,7 +56,7 @@ def test_adjoint_dz_dp_equals_the_forward_mode_contraction(mi):
         adjoint = method.loss_gradient(problem, fields, w, spp=4, seed=3)
         assert adjoint.shape == (48,) and np.count_nonzero(adjoint) == 48      # every texel of the seen wall
         problem.layout = DerivativeLayout(tuple(TEXELS), ((0, 1, 2),) * len(TEXELS))   # images of these texels only
-        explicit = contract(method.images(problem, fields, spp=4, seed=3), w)[TEXELS]
+        explicit = contract(method.gradient_images(problem, fields, spp=4, seed=3), w)[TEXELS]
         scale = np.abs(explicit).max()
         assert np.min(np.abs(explicit)) > 0.05 * scale, explicit               # a real check: every texel counts
         np.testing.assert_allclose(adjoint[TEXELS], explicit, rtol=1e-4, atol=1e-5 * scale)
@@ -68,15 +68,15 @@ def test_the_probe_plans_a_texture_as_one_unit(mi):
     """The effect probe of ``radiance-cache`` differentiates a texture along the sum of its texels
     (one traversal, not one per texel): its plan has one active entry for the 48 texels, and the
     layout carries every texel."""
+    from services.solver.scene.effects import choose_effects
     from services.solver.scene.facts import probe_scene
-    from services.solver.scene.planner import plan_effects
 
     problem = _problem()
     facts = probe_scene(problem.scene, problem.parameters, probe_rays=1 << 10, probe_depth=2)
     assert [(s.label, s.size) for s in facts.scalars] == [(KEY, 48)] and facts.scalars[0].first_bounce == 0
-    plan = plan_effects(facts, "radiance-cache", {"radiance"})
+    plan = choose_effects(facts, "radiance-cache", {"radiance"})
     assert plan.bsdf_term.value and len(plan.scalars) == 1 and plan.scalars[0].active
-    problem.apply_plan(plan)
+    problem.simulate(plan)
     assert problem.layout.scalars == tuple(range(48))
 
 

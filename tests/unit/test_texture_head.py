@@ -81,7 +81,7 @@ def test_loss_gradient_equals_the_explicit_p_image_contraction(mi):
     w = np.random.default_rng(0).uniform(-1.0, 1.0, (8, 8, 3)).astype(np.float32)
     method = NdrfHead()
     fast = method.loss_gradient(problem, fields, w, spp=4, seed=3)
-    images = method.images(problem, fields, spp=4, seed=3)
+    images = method.gradient_images(problem, fields, spp=4, seed=3)
     assert images.shape == (48, 8, 8, 3)
     explicit = contract(images, w)
     assert np.allclose(fast, explicit, rtol=1e-4, atol=1e-5 * np.abs(explicit).max())

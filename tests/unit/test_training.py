@@ -48,4 +48,4 @@ def test_a_method_without_its_field_refuses_to_run(mi):
     from services.solver.estimators.methods import Fields, make_method
 
     with pytest.raises(ValueError, match="needs a trained"):
-        make_method("ndrf-lhs").images(None, Fields(), spp=1, seed=0)
+        make_method("ndrf-lhs").gradient_images(None, Fields(), spp=1, seed=0)

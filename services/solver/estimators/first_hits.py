@@ -164,7 +164,7 @@ class FirstHitCache:
         out[list(problem.layout.scalars)] = to_host((per_pixel * per_ray).sum((0, 2)))
         return out
 
-    def images(self, sensor: int, differential: NeuralField | None) -> np.ndarray:
+    def gradient_images(self, sensor: int, differential: NeuralField | None) -> np.ndarray:
         """Gradient images ``(P, H, W, 3)`` (only for writing them: :meth:`loss_gradient` does not
         need them)."""
         view = self.views[sensor]

@@ -1,6 +1,6 @@
 """Which derivatives are carried, and where: the outputs of ``dL_theta``.
 
-The optimized scalars ``p_1..p_P`` are reduced to the ``A`` *active* ones (the planner drops
+The optimized scalars ``p_1..p_P`` are reduced to the ``A`` *active* ones (`choose_effects` drops
 scalars no camera path depends on), and each active scalar carries only the RGB channels it can
 change (an RGB albedo component changes one channel: RGB transport never mixes channels). The
 ``K`` outputs of ``dL_theta`` are the flattened ``(active scalar, channel)`` pairs.
@@ -31,7 +31,7 @@ class DerivativeLayout:
     def by_component(cls, sizes: list[int]) -> DerivativeLayout:
         """Every scalar active; component ``c`` of a three-component (RGB) parameter carries channel
         ``c`` alone (RGB transport never mixes channels), any other scalar all three. What the
-        effect planner's probe would measure for an RGB value, known without probing (``prb``)."""
+        probe of `choose_effects` would measure for an RGB value, known without probing (``prb``)."""
         channels = [((c,) if size == 3 else (0, 1, 2)) for size in sizes for c in range(size)]
         return cls(tuple(range(len(channels))), tuple(channels))
 

@@ -9,15 +9,15 @@ import numpy as np
 
 from services.solver.estimators.layout import DerivativeLayout
 from services.solver.sampling.surface import SurfaceSampler
+from services.solver.scene.effects import Effects
 from services.solver.scene.load import LoadedScene
 from services.solver.scene.params import ParameterSet
-from services.solver.scene.planner import EffectPlan
 
 
 @dataclass
 class Problem:
     """A loaded scene, the ordered optimized scalars ``p`` (``P = parameters.n``), and what is
-    simulated of it (by default everything; :meth:`apply_plan` narrows it to the effect plan):
+    simulated of it (by default everything; :meth:`simulate` narrows it to the chosen effects):
 
     delta_depth      ideal-specular bounces rays follow
     layout           the active scalars and the RGB channels dL_theta carries for each
@@ -28,22 +28,22 @@ class Problem:
     scene: LoadedScene
     parameters: ParameterSet
     delta_depth: int = 8
-    layout: DerivativeLayout = field(init=False)  # every scalar, an RGB component its own channel, until apply_plan
+    layout: DerivativeLayout = field(init=False)  # every scalar, an RGB component its own channel, until simulate
     attach_bsdf: bool = True
     attach_emission: bool = True
-    plan: EffectPlan | None = None
+    effects: Effects | None = None
     sanitized: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self):
         self.layout = DerivativeLayout.by_component([info.size for info in self.parameters.infos])
 
-    def apply_plan(self, plan: EffectPlan) -> None:
-        """Simulate only what ``plan`` calls for."""
-        self.plan = plan
-        self.delta_depth = int(plan.delta_depth.value)
-        self.attach_bsdf = bool(plan.bsdf_term.value)
-        self.attach_emission = bool(plan.emission_term.value)
-        active = plan.active_channels()
+    def simulate(self, effects: Effects) -> None:
+        """Simulate only what ``effects`` call for."""
+        self.effects = effects
+        self.delta_depth = int(effects.delta_depth.value)
+        self.attach_bsdf = bool(effects.bsdf_term.value)
+        self.attach_emission = bool(effects.emission_term.value)
+        active = effects.active_channels()
         self.layout = DerivativeLayout(tuple(i for i, _ in active), tuple(channels for _, channels in active))
 
     @cached_property

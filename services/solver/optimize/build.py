@@ -37,7 +37,7 @@ def apply_effects(prepared: Prepared, recipe: Recipe) -> None:
     """Narrow the prepared problem to what the recipe simulates: its effects and its layout."""
     problem = prepared.problem
     if recipe.effects is not None:
-        problem.apply_plan(recipe.effects)
+        problem.simulate(recipe.effects)
     problem.layout = recipe.layout
 
 
@@ -45,7 +45,7 @@ def build(prepared: Prepared, recipe: Recipe) -> Built:
     """The run's objects (module docstring)."""
     spec, problem = prepared.spec, prepared.problem
     apply_effects(prepared, recipe)
-    method = make_method(recipe.method, problem.plan, recipe.depth)
+    method = make_method(recipe.method, problem.effects, recipe.depth)
     if isinstance(method, Prb):
         method.freeze = spec.render.freeze
         method.fit_views(len(prepared.targets), len(channel_groups(list(problem.layout.channels))))
@@ -55,7 +55,7 @@ def build(prepared: Prepared, recipe: Recipe) -> Built:
         method = NdrfHead()
     render = spec.render
     hybrid = recipe.fields_for is not None and recipe.fields_for != recipe.method
-    field_user = make_method(recipe.fields_for, problem.plan, recipe.depth) if hybrid and recipe.fields_for else method
+    field_user = make_method(recipe.fields_for, problem.effects, recipe.depth) if hybrid and recipe.fields_for else method
     trainer = None
     if recipe.radiance or recipe.differential:
         trainer = FieldTrainer(problem, spec.training, radiance=recipe.radiance, differential=recipe.differential,

@@ -64,7 +64,7 @@ def estimate_batch(k: int, prepared: Prepared, recipe: Recipe, built: Built, sta
                 problem, fields, loss, spp=size.spp, gradient_spp=size.gradient_spp, seed=seed, depth=recipe.depth,
                 sensor=view)
             if view in measured:
-                images = built.jacobian_source.images(problem, fields, spp=size.gradient_spp,
+                images = built.jacobian_source.gradient_images(problem, fields, spp=size.gradient_spp,
                                                       seed=derive_seed(seed, "jacobian"), sensor=view)
         out.dz_dp += batch.scale * dz_dp
         out.loss += batch.scale * z
@@ -72,7 +72,7 @@ def estimate_batch(k: int, prepared: Prepared, recipe: Recipe, built: Built, sta
         if images is not None:
             out.jacobians[view] = [_matrix(problem, images, block)]
             if draws > 1:
-                other = built.jacobian_source.images(problem, fields, spp=size.gradient_spp,
+                other = built.jacobian_source.gradient_images(problem, fields, spp=size.gradient_spp,
                                                      seed=derive_seed(seed, "cross"), sensor=view)
                 out.jacobians[view].append(_matrix(problem, other, block))
     return out

@@ -46,7 +46,7 @@ def evaluate_gradient(spec: JobSpec, method_name: str, *, spp: int, train_steps:
         raise InvalidJob("parameters", f"the gradient images are one per scalar, {problem.parameters.n} for a texture "
                                        f"job: run the job instead (ndrf run); its images iterations write "
                                        f"textures/<key>.dz_dp.npy, the gradient as a texture")
-    method = make_method(method_name, problem.plan, recipe.depth)
+    method = make_method(method_name, problem.effects, recipe.depth)
     steps = spec.training.warmup_steps if train_steps is None else train_steps
 
     start = time.perf_counter()
@@ -57,7 +57,7 @@ def evaluate_gradient(spec: JobSpec, method_name: str, *, spp: int, train_steps:
     trained = time.perf_counter()
     images, dz_dp, loss = {}, np.zeros(problem.parameters.n), 0.0
     for sensor, target in sorted(prepared.targets.items()):
-        images[sensor] = method.images(problem, fields_of(trainer), spp=spp,
+        images[sensor] = method.gradient_images(problem, fields_of(trainer), spp=spp,
                                        seed=derive_seed(spec.seed, "gradient", sensor), sensor=sensor)
         candidate = render(problem, spp=spec.render.spp, seed=derive_seed(spec.seed, "candidate", sensor),
                            sensor=sensor, depth=recipe.depth)
@@ -78,6 +78,6 @@ def evaluate_gradient(spec: JobSpec, method_name: str, *, spp: int, train_steps:
         "loss": loss,
         "dz_dp": dz_dp.tolist(),
         "sanitized": dict(problem.sanitized),
-        "effects": problem.plan.to_json() if problem.plan is not None else None,
+        "effects": problem.effects.to_json() if problem.effects is not None else None,
     }
     return GradientEvaluation(images, summary)

@@ -11,7 +11,7 @@ delta throughput ``w_k β_k``):
     prb[p, h, w]         = ∂I/∂p by Mitsuba's prb in forward mode, same camera           (P, H, W, 3)
 
 (:class:`~services.solver.estimators.first_hits.FirstHitCache` on the scene rebuilt with the
-camera appended: :mod:`services.solver.scene.cameras`). Scalars the job's effect plan left
+camera appended: :mod:`services.solver.scene.cameras`). Scalars the job's chosen effects left
 inactive have zero images in both.
 
 :func:`restore` rebuilds the fields from a checkpoint's bytes (the job's own fingerprint checked);
@@ -97,7 +97,7 @@ def check_layout(problem: Problem, saved: dict, field: str = "checkpoint") -> No
     layout = saved.get("layout")
     if layout is not None and layout != layout_json(problem.layout):
         raise ValueError(f"the {field}'s dL_theta has another layout of scalars and channels ({layout}; this job: "
-                         f"{layout_json(problem.layout)}): its effect plan differs")
+                         f"{layout_json(problem.layout)}): its chosen effects differ")
 
 
 def restore(spec: JobSpec, blob: bytes, scene_file: Path | None = None, *, train: bool = False) -> Restored:
@@ -177,12 +177,12 @@ def render_view(restored: Restored, request: ViewRequest) -> FieldView:
     built = time.perf_counter()
     cache = FirstHitCache(problem, [index], request.spp, derive_seed(request.seed, "view"), queried)
     radiance = cache.candidate(index, fields.radiance)
-    gradients = cache.images(index, fields.differential)
+    gradients = cache.gradient_images(index, fields.differential)
     done = time.perf_counter()
     prb = None
     if request.prb_spp is not None:
-        method = make_method(Method.PRB, problem.plan, restored.depth)
-        prb = method.images(problem, Fields(), spp=request.prb_spp, seed=derive_seed(request.seed, "prb"),
+        method = make_method(Method.PRB, problem.effects, restored.depth)
+        prb = method.gradient_images(problem, Fields(), spp=request.prb_spp, seed=derive_seed(request.seed, "prb"),
                             sensor=index)
     seconds = {"scene": built - started, "fields": done - built, "prb": time.perf_counter() - done}
     if problem.sanitized:

@@ -69,6 +69,6 @@ def render_views(prepared, method: GradientMethod, fields: Fields, candidates: d
             image = render(problem, spp=spp, seed=seed, sensor=sensor, depth=depth)
         renders[sensor] = np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
         if per_scalar:
-            gradients[sensor] = np.nan_to_num(method.images(problem, fields, spp=gradient_spp, seed=seed,
+            gradients[sensor] = np.nan_to_num(method.gradient_images(problem, fields, spp=gradient_spp, seed=seed,
                                                             sensor=sensor), nan=0.0, posinf=0.0, neginf=0.0)
     return renders, gradients

@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass
 from services.solver.estimators.layout import DerivativeLayout
 from services.solver.estimators.render import PathDepth
 from services.solver.optimize.stopping import StopRule
-from services.solver.scene.planner import EffectPlan
+from services.solver.scene.effects import Effects
 
 
 @dataclass(frozen=True)
@@ -107,7 +107,7 @@ class Recipe:
                     ``differential-field`` (``dL_theta`` at cached camera hits)
     ``fields_for``  the method the trained fields serve, whose effects were chosen (None: no field,
                     or the many-parameter head, which simulates every effect)
-    ``effects``     what the fields simulate of the scene (:mod:`services.solver.scene.planner`)
+    ``effects``     what the fields simulate of the scene (:mod:`services.solver.scene.effects`)
     ``layout``      the derivatives carried: active scalars and their RGB channels
     ``radiance``, ``differential``  the fields the run trains (L_phi, dL_theta)
     """
@@ -116,7 +116,7 @@ class Recipe:
     jacobian: str
     fields_for: str | None
     depth: PathDepth
-    effects: EffectPlan | None
+    effects: Effects | None
     layout: DerivativeLayout
     steps: Steps
     batch: BatchRule

@@ -47,9 +47,9 @@ from services.solver.estimators.methods.prb import channel_groups
 from services.solver.estimators.render import PathDepth
 from services.solver.optimize.recipe import BatchRule, Decision, Recipe, Steps
 from services.solver.optimize.stopping import StopRule
+from services.solver.scene.effects import Effects, choose_effects
 from services.solver.scene.facts import SceneFacts
 from services.solver.scene.footprint import pixels_per_texel
-from services.solver.scene.planner import EffectPlan, plan_effects
 from services.solver.training.trainer import trained_fields
 
 #: A texture needs this many pixels per texel (median over its footprint) to be optimized at its own resolution.
@@ -151,7 +151,7 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
     planned_for = fields_method(spec)
     effects = None
     if planned_for is not None:
-        effects = plan_effects(measures.facts(), planned_for, method_class(planned_for).uses, spec.effects,
+        effects = choose_effects(measures.facts(), planned_for, method_class(planned_for).uses, spec.effects,
                                spec.training.delta_depth)
         warnings += effects.warnings
     layout = _layout(parameters, effects, spec.effects.merge_channels)
@@ -172,7 +172,7 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
                   warnings=tuple(warnings), texture_blocks=blocks, radiance=radiance, differential=differential)
 
 
-def _fields(spec: JobSpec, method: str, planned_for: str | None, effects: EffectPlan | None,
+def _fields(spec: JobSpec, method: str, planned_for: str | None, effects: Effects | None,
             depth: PathDepth) -> tuple[bool, bool]:
     """The fields the run trains, ``(L_phi, dL_theta)``: those of the method they serve, as the
     effects shape it (:func:`services.solver.training.trainer.trained_fields`); both for the
@@ -247,7 +247,7 @@ def _stop(spec: JobSpec, optimizer: str, decide) -> StopRule:
     return StopRule(spec.iterations, asked.standard_error, asked.relative, auto)
 
 
-def _layout(parameters: Parameters, effects: EffectPlan | None, merge_channels: bool) -> DerivativeLayout:
+def _layout(parameters: Parameters, effects: Effects | None, merge_channels: bool) -> DerivativeLayout:
     """The derivatives the run carries: the effects' active scalars and channels, else every scalar
     (each RGB component its own channel, or all three with ``merge_channels`` off)."""
     if effects is not None:
@@ -311,7 +311,7 @@ def _trust_region(measures: Measures, decide) -> tuple[float, float]:
     return CLOSED_GROWTH, CLOSED_START
 
 
-def _batch(spec: JobSpec, method: str, optimizer: str, parameters: Parameters, effects: EffectPlan | None,
+def _batch(spec: JobSpec, method: str, optimizer: str, parameters: Parameters, effects: Effects | None,
            layout: DerivativeLayout, sensors: int, measures: Measures, decide) -> BatchRule:
     """The first batch of views and samples per pixel, and whether the run may grow it."""
     render, auto_views = spec.render, spec.views_per_iteration == "auto"
@@ -345,7 +345,7 @@ def _batch(spec: JobSpec, method: str, optimizer: str, parameters: Parameters, e
     return BatchRule(views, spp, gradient_spp, grows=grows, max_growth=MAX_GROWTH)
 
 
-def _indirect_only(effects: EffectPlan | None, layout: DerivativeLayout, measures: Measures) -> bool:
+def _indirect_only(effects: Effects | None, layout: DerivativeLayout, measures: Measures) -> bool:
     """True when no active scalar changes the light of the camera hits directly (the hidden
     object of the paper's Fig. 5): from the effects where the method chose them, else measured."""
     if effects is not None:

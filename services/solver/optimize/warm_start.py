@@ -48,7 +48,7 @@ def load_fields(trainer: FieldTrainer, saved: dict | None) -> list[str]:
         try:
             field.load_state_dict(saved["fields"][name])
         except RuntimeError as exc:
-            raise InvalidJob(FIELD, f"the {name} field does not fit this job (its effect plan or field "
+            raise InvalidJob(FIELD, f"the {name} field does not fit this job (its chosen effects or field "
                                     f"settings differ): {str(exc).splitlines()[0]}") from None
         try:
             trainer.optimizers[name].load_state_dict(saved["optimizers"][name])

@@ -176,7 +176,7 @@ def _evaluate(scene, g: IncidentGeometry, attach_bsdf: bool = True, attach_emiss
 
     A sampled delta lobe (the coating of a plastic, say) contributes its detached sample weight:
     like Mitsuba's ``prb`` (detached sampling), no derivative flows through ideal-specular weights.
-    ``attach_bsdf`` / ``attach_emission`` off: that factor is evaluated detached (the planner
+    ``attach_bsdf`` / ``attach_emission`` off: that factor is evaluated detached (`choose_effects`
     found its derivative zero, or the job forced the term off).
     """
     maybe_bsdf = (lambda x: x) if attach_bsdf else dr.detach

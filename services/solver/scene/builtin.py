@@ -13,7 +13,7 @@ declared at the top level and referenced by the shapes, so parameter keys read a
 ``glossy-box``      The Cornell box with a rough gold sphere (GGX, ``metal.alpha.value`` = 0.15):
                     glossy reflections of the walls, and a roughness to optimize.
 ``closet-box``      The Cornell box with a closed cube hiding a sphere: its parameters cannot change
-                    the image (the planner drops them).
+                    the image (`choose_effects` drops them).
 ``room-closed-8``   The ``hidden-object`` room with a sphere in sight (``ball.reflectance.value``) and
                     8 cameras of 128x128 around it: a multi-view job with long light paths.
 ``room-open-8``     The same room without its front wall: light escapes, paths are shorter.

@@ -1,6 +1,6 @@
 """What a scene and its chosen parameters can produce, measured by a cheap Monte Carlo probe.
 
-The effect planner (:mod:`services.solver.scene.planner`) is pure logic over these facts. The probe uses
+`choose_effects` (:mod:`services.solver.scene.effects`) is pure logic over these facts. The probe uses
 the solver's own machinery, so what it reports is what the solver would compute:
 
 * **interreflection**: of ``probe_rays`` BSDF-sampled rays leaving residual points, how many end

@@ -2,7 +2,7 @@
 Mitsuba dict.
 
 Scenes are loaded with ``optimize=False``: Mitsuba would otherwise merge shapes that share a BSDF,
-and the sampler, the planner and the tests need per-object identity. Parameter keys are the same
+and the sampler, `choose_effects` and the tests need per-object identity. Parameter keys are the same
 either way.
 """
 

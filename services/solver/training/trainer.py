@@ -31,7 +31,7 @@ from services.solver.estimators.problem import Problem
 from services.solver.fields.averaging import WeightAverage
 from services.solver.fields.field import NeuralField
 from services.solver.fields.head import ParameterHead
-from services.solver.scene.planner import EffectPlan
+from services.solver.scene.effects import Effects
 from services.solver.seeds import derive_seed
 from services.solver.training.head import HeadBatch, draw_head_batch, head_lhs, head_rhs_samples
 from services.solver.training.pool import ResidualPool
@@ -78,7 +78,7 @@ class FieldTrainer:
         #: dL_theta is the many-parameter head (``training.head``; services.solver.training.head)
         head = differential and config.head is not None
         if differential and not head and problem.layout.outputs == 0:
-            raise ValueError("dL_theta has no output: no active scalar (see the effect plan)")
+            raise ValueError("dL_theta has no output: no active scalar (see the chosen effects)")
         # each field is initialised from its own seed: training one does not change the other
         self.radiance = self._field(config.radiance, 3, lo, hi, "radiance") if radiance else None
         self.differential: NeuralField | None = None
@@ -327,7 +327,7 @@ def layout_json(layout) -> dict:
     return {"scalars": [int(i) for i in layout.scalars], "channels": [[int(c) for c in cs] for cs in layout.channels]}
 
 
-def trained_fields(method: GradientMethod, effects: EffectPlan | None, *, radiance: bool = False) -> tuple[bool, bool]:
+def trained_fields(method: GradientMethod, effects: Effects | None, *, radiance: bool = False) -> tuple[bool, bool]:
     """Which fields a run of ``method`` (as its effects shape it) trains: ``(L_phi, dL_theta)``.
 
     ``dL_theta`` when the method queries it; ``L_phi`` when the method queries it, when
@@ -343,7 +343,7 @@ def trainer_for(problem: Problem, method: GradientMethod, config: TrainingConfig
                 radiance: bool = False) -> FieldTrainer | None:
     """The trainer of exactly the fields ``method`` uses (none for ``direct`` and ``prb``), for
     a gradient evaluated outside a run (a run's trainer follows its recipe)."""
-    radiance, differential = trained_fields(method, problem.plan, radiance=radiance)
+    radiance, differential = trained_fields(method, problem.effects, radiance=radiance)
     if not (radiance or differential):
         return None
     return FieldTrainer(problem, config, radiance=radiance, differential=differential, seed=seed)

@@ -1,7 +1,7 @@
 """The registry of gradient methods: one class per :class:`schemas.methods.Method`.
 
-Each class declares its ``name``, the fields it can use (``uses``) and how an effect plan shapes
-it (``from_plan``); the trainer, the planner, the loop, the CLI, the tests and the bench read
+Each class declares its ``name``, the fields it can use (``uses``) and how chosen effects shape
+it (``from_effects``); the trainer, `choose_effects`, the loop, the CLI, the tests and the bench read
 this registry. The interface is documented once, in :mod:`.base`.
 """
 
@@ -16,7 +16,7 @@ from services.solver.estimators.methods.prb import Prb
 
 if TYPE_CHECKING:
     from services.solver.estimators.render import PathDepth
-    from services.solver.scene.planner import EffectPlan
+    from services.solver.scene.effects import Effects
 
 METHODS: dict[Method, type[GradientMethod]] = {cls.name: cls for cls in (NdrfLhs, NdrfRhs, RadianceCache, Direct, Prb)}
 
@@ -32,10 +32,10 @@ def method_class(name: str | Method) -> type[GradientMethod]:
         raise ValueError(f"unknown gradient method {name!r}; known: {', '.join(METHODS)}") from None
 
 
-def make_method(name: str | Method, plan: EffectPlan | None = None, depth: PathDepth | None = None) -> GradientMethod:
-    """The method ``name`` as the effect plan shapes it (see each class's ``from_plan``);
+def make_method(name: str | Method, effects: Effects | None = None, depth: PathDepth | None = None) -> GradientMethod:
+    """The method ``name`` as the chosen effects shape it (see each class's ``from_effects``);
     ``depth`` is the path depth of path-traced methods (``prb`` refuses to be built without one)."""
-    return method_class(name).from_plan(plan, depth)
+    return method_class(name).from_effects(effects, depth)
 
 
 __all__ = ["METHODS", "Fields", "GradientMethod", "OneBounce", "contract", "make_method", "method_class"]

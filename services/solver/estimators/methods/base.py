@@ -8,7 +8,7 @@ integrators do:
                           camera-hit methods contract each camera ray's derivative with ``dz/dy`` at
                           its pixel, without forming per-scalar images (the forward mode of their
                           one estimate, :mod:`.camera_hit`; its backward mode for a texture).
-``images()``              per-scalar gradient images ``dI/dp``, ``(P, H, W, 3)`` float32 (Eq. 3): the
+``gradient_images()``              per-scalar gradient images ``dI/dp``, ``(P, H, W, 3)`` float32 (Eq. 3): the
                           Jacobian of second-order steps, and what the loop writes on its images
                           schedule and ``ndrf gradient`` writes.
 
@@ -17,8 +17,8 @@ steps 2-5 for one view, without and with the Jacobian. Every method that traces 
 job's :class:`~services.solver.estimators.render.PathDepth` (there is no default depth).
 
 A method class declares its public ``name`` (a :class:`schemas.methods.Method`), the fields it can
-use (``uses``), and how it is built from an effect plan (:meth:`GradientMethod.from_plan`): the
-plan may have dropped a field the scene does not need, and the instance then says which fields it
+use (``uses``), and how it is built from chosen effects (:meth:`GradientMethod.from_effects`): the
+effects may have dropped a field the scene does not need, and the instance then says which fields it
 ``needs``. A method called without a field it needs raises instead of returning a silently wrong
 gradient.
 """
@@ -38,7 +38,7 @@ if TYPE_CHECKING:
     from services.solver.estimators.render import PathDepth
     from services.solver.fields.field import NeuralField
     from services.solver.fields.head import ParameterHead
-    from services.solver.scene.planner import EffectPlan
+    from services.solver.scene.effects import Effects
 
 RADIANCE, DIFFERENTIAL = "radiance", "differential"
 
@@ -70,8 +70,8 @@ class GradientMethod(ABC):
         self.needs_differential = differential
 
     @classmethod
-    def from_plan(cls, plan: EffectPlan | None, depth: PathDepth | None) -> GradientMethod:
-        """The method as the plan shapes it (default: every field it can use); ``depth`` is the path
+    def from_effects(cls, effects: Effects | None, depth: PathDepth | None) -> GradientMethod:
+        """The method as the effects shape it (default: every field it can use); ``depth`` is the path
         depth of the methods that trace paths."""
         return cls(radiance=RADIANCE in cls.uses, differential=DIFFERENTIAL in cls.uses)
 
@@ -82,14 +82,14 @@ class GradientMethod(ABC):
             raise ValueError(f"{self.name} needs a trained differential field dL_theta")
 
     @abstractmethod
-    def images(self, problem: Problem, fields: Fields, *, spp: int, seed: int, sensor: int = 0) -> np.ndarray:
+    def gradient_images(self, problem: Problem, fields: Fields, *, spp: int, seed: int, sensor: int = 0) -> np.ndarray:
         """Gradient images ``dI/dp``, ``(P, H, W, 3)`` float32."""
 
     def loss_gradient(self, problem: Problem, fields: Fields, dz_dy: np.ndarray, *, spp: int, seed: int,
                       sensor: int = 0) -> np.ndarray:
         """``dz/dp``, ``(P,)`` float64, for ``dz/dy`` of shape ``(H, W, 3)``. The default contracts
         :meth:`images`; subclasses override it with something cheaper."""
-        return contract(self.images(problem, fields, spp=spp, seed=seed, sensor=sensor), dz_dy)
+        return contract(self.gradient_images(problem, fields, spp=spp, seed=seed, sensor=sensor), dz_dy)
 
     def candidate_and_gradient(self, problem: Problem, fields: Fields, loss: Loss, *, spp: int, gradient_spp: int,
                                seed: int, depth: PathDepth, sensor: int = 0) -> tuple[np.ndarray, float, np.ndarray]:
@@ -115,7 +115,7 @@ class GradientMethod(ABC):
 
         candidate, z, dz_dp = self.candidate_and_gradient(problem, fields, loss, spp=spp, gradient_spp=gradient_spp,
                                                           seed=seed, depth=depth, sensor=sensor)
-        images = self.images(problem, fields, spp=gradient_spp, seed=derive_seed(seed, "gradient"), sensor=sensor)
+        images = self.gradient_images(problem, fields, spp=gradient_spp, seed=derive_seed(seed, "gradient"), sensor=sensor)
         return candidate, z, dz_dp, images
 
 

@@ -42,11 +42,11 @@ class CachedFirstHits(GradientMethod):
         if cached_lhs and not self.cached_lhs:
             log.warning("render.first_hits='cached' serves ndrf-lhs only; %s computes its own gradient", inner.name)
 
-    def images(self, problem: Problem, fields: Fields, *, spp: int, seed: int, sensor: int = 0) -> np.ndarray:
+    def gradient_images(self, problem: Problem, fields: Fields, *, spp: int, seed: int, sensor: int = 0) -> np.ndarray:
         if self.cached_lhs:
             self.check(fields)
-            return self.cache.images(sensor, fields.differential)
-        return self.inner.images(problem, fields, spp=spp, seed=seed, sensor=sensor)
+            return self.cache.gradient_images(sensor, fields.differential)
+        return self.inner.gradient_images(problem, fields, spp=spp, seed=seed, sensor=sensor)
 
     def loss_gradient(self, problem: Problem, fields: Fields, dz_dy: np.ndarray, *, spp: int, seed: int,
                       sensor: int = 0) -> np.ndarray:

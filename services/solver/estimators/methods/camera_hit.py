@@ -158,7 +158,7 @@ class CameraHitMethod(GradientMethod):
 
     # ------------------------------------------------------------ entry points
 
-    def images(self, problem, fields, *, spp, seed, sensor=0):
+    def gradient_images(self, problem, fields, *, spp, seed, sensor=0):
         """``dI/dp`` ``(P, H, W, 3)``: the forward mode splatted by the sensor's film."""
         self.check(fields)
         width, height = problem.scene.resolution(sensor)
@@ -285,7 +285,7 @@ class CameraHitMethod(GradientMethod):
         """``E(x) + L_r(x)`` per ray (the attached part of the estimate; ``E`` on the camera hits
         on emitters, ``L_r`` on surfaces: no ray has both), ``(K,)`` ``mi.Color3f``, evaluated only
         on the rays ``keep`` and zero on the others and where it is not finite; the rays kept; the
-        bounce's throughput ``T`` (None at the hit). ``E`` is attached when the planner kept
+        bounce's throughput ``T`` (None at the hit). ``E`` is attached when `choose_effects` kept
         emission terms (``Problem.attach_emission``)."""
         reflected, ok, throughput = p.reflected.attached(problem, keep)
         si, on_emitter = p.samples.chain.si, p.on_emitter & keep
@@ -341,7 +341,7 @@ def _backward(params, weighted) -> np.ndarray:
 class NdrfLhs(CameraHitMethod):
     """``∂L_r(x) = dL_theta(x, ω_o)`` at the camera hit (Eq. 11); its primal reads ``L_phi(x)``.
 
-    From a plan without ``dL_theta`` (no interreflection: one bounce with emission is exact, or the
+    From effects without ``dL_theta`` (no interreflection: one bounce with emission is exact, or the
     field forced off) it becomes that one-bounce estimate."""
 
     name = Method.NDRF_LHS
@@ -351,9 +351,9 @@ class NdrfLhs(CameraHitMethod):
         super().__init__(radiance=radiance, differential=differential)
 
     @classmethod
-    def from_plan(cls, plan, depth):
-        if plan is not None and not plan.differential_field.value:
-            return OneBounce(cls.name, radiance=bool(plan.radiance_field.value), differential=False)
+    def from_effects(cls, effects, depth):
+        if effects is not None and not effects.differential_field.value:
+            return OneBounce(cls.name, radiance=bool(effects.radiance_field.value), differential=False)
         return cls()
 
     def reflected(self, problem, fields, si, where, sampler, primal):
@@ -402,10 +402,10 @@ class NdrfRhs(OneBounce):
         super().__init__(Method.NDRF_RHS, radiance=radiance, differential=differential)
 
     @classmethod
-    def from_plan(cls, plan, depth):
-        if plan is None:
+    def from_effects(cls, effects, depth):
+        if effects is None:
             return cls()
-        return cls(radiance=bool(plan.radiance_field.value), differential=bool(plan.differential_field.value))
+        return cls(radiance=bool(effects.radiance_field.value), differential=bool(effects.differential_field.value))
 
 
 class RadianceCache(OneBounce):
@@ -418,8 +418,8 @@ class RadianceCache(OneBounce):
         super().__init__(Method.RADIANCE_CACHE, radiance=radiance, differential=differential)
 
     @classmethod
-    def from_plan(cls, plan, depth):
-        return cls(radiance=True if plan is None else bool(plan.radiance_field.value))
+    def from_effects(cls, effects, depth):
+        return cls(radiance=True if effects is None else bool(effects.radiance_field.value))
 
 
 class Direct(OneBounce):

@@ -152,7 +152,7 @@ class NdrfHead(GradientMethod):
             total += to_host(head.coefficients.double().T @ v)
         return total
 
-    def images(self, problem, fields, *, spp, seed, sensor=0):
+    def gradient_images(self, problem, fields, *, spp, seed, sensor=0):
         """``dI/dp`` ``(P, H, W, 3)``: one forward-mode pass per scalar plus the head's ``T C_k·B``
         per ray, splatted by the film. P images: for small P (tests, ``ndrf gradient``)."""
         self.check(fields)

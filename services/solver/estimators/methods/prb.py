@@ -142,14 +142,14 @@ class Prb(GradientMethod):
         self._frozen_tangent = dr.freeze(tangent_render, limit=tangent, warn_after=tangent)
 
     @classmethod
-    def from_plan(cls, plan, depth):
+    def from_effects(cls, effects, depth):
         if depth is None:
             raise ValueError("prb traces paths: it needs a PathDepth (services.solver.estimators.render)")
         return cls(depth=depth)
 
     # ----------------------------------------------------------- Jacobian
 
-    def images(self, problem: Problem, fields: Fields, *, spp: int, seed: int, sensor: int = 0) -> np.ndarray:
+    def gradient_images(self, problem: Problem, fields: Fields, *, spp: int, seed: int, sensor: int = 0) -> np.ndarray:
         return self._jacobian(problem, spp=spp, seed=seed, sensor=sensor)[1]
 
     def _jacobian(self, problem: Problem, *, spp: int, seed: int, sensor: int) -> tuple[np.ndarray, np.ndarray]:
@@ -202,7 +202,8 @@ class Prb(GradientMethod):
                                                sensor=sensor)
         else:
             candidate = render(problem, spp=spp, seed=derive_seed(seed, "candidate"), sensor=sensor, depth=depth)
-            images = self.images(problem, fields, spp=gradient_spp, seed=derive_seed(seed, "jacobian"), sensor=sensor)
+            images = self.gradient_images(problem, fields, spp=gradient_spp, seed=derive_seed(seed, "jacobian"),
+                                          sensor=sensor)
         z, dz_dy = loss(candidate)
         return candidate, z, contract(images, dz_dy), images
 

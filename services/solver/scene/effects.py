@@ -1,7 +1,7 @@
-"""The effect planner: simulate only what a scene and its chosen parameters can produce.
+"""`choose_effects`: simulate only what a scene and its chosen parameters can produce.
 
 Pure logic over :class:`services.solver.scene.facts.SceneFacts` (measured by a probe) and the job's
-method and overrides. Every decision carries the reason a user reads in the job's plan:
+method and overrides. Every decision carries the reason a user reads in the job's plan.json:
 
 * ``emission_term``      ∂E of Eq. 4, non-zero only for emitter parameters
 * ``bsdf_term``          ∫ (∂f) L of Eq. 4, non-zero only for BSDF parameters
@@ -28,14 +28,15 @@ DELTA_TAIL = 1e-4
 
 
 @dataclass(frozen=True)
-class Decision:
+class EffectChoice:
+    """One term or field of the chosen effects: on or off (or a depth), why, and whether the job forced it."""
     value: bool | int
     reason: str
     forced: bool = False
 
 
 @dataclass(frozen=True)
-class ScalarPlan:
+class ScalarEffect:
     label: str
     active: bool
     channels: tuple[int, ...]
@@ -48,13 +49,13 @@ class ScalarPlan:
 
 
 @dataclass(frozen=True)
-class EffectPlan:
-    emission_term: Decision
-    bsdf_term: Decision
-    radiance_field: Decision
-    differential_field: Decision
-    delta_depth: Decision
-    scalars: list[ScalarPlan]
+class Effects:
+    emission_term: EffectChoice
+    bsdf_term: EffectChoice
+    radiance_field: EffectChoice
+    differential_field: EffectChoice
+    delta_depth: EffectChoice
+    scalars: list[ScalarEffect]
     warnings: list[str] = field(default_factory=list)
 
     @property
@@ -75,13 +76,13 @@ class EffectPlan:
         return asdict(self)
 
 
-def _switch(name: str, setting: str, needed: bool, reason: str, warnings: list[str], consequence: str) -> Decision:
+def _switch(name: str, setting: str, needed: bool, reason: str, warnings: list[str], consequence: str) -> EffectChoice:
     if setting == "auto":
-        return Decision(needed, reason)
+        return EffectChoice(needed, reason)
     value = setting == "on"
     if needed and not value:
         warnings.append(f"{name} forced off although it is needed ({reason}): {consequence}")
-    return Decision(value, f"forced {setting} by the job ({'needed' if needed else 'not needed'}: {reason})", True)
+    return EffectChoice(value, f"forced {setting} by the job ({'needed' if needed else 'not needed'}: {reason})", True)
 
 
 def _delta_depth(facts: SceneFacts, cap: int) -> tuple[int, str]:
@@ -100,9 +101,9 @@ def _delta_depth(facts: SceneFacts, cap: int) -> tuple[int, str]:
                  f"remain ({sum(counts[cap + 1:])} of {total} probe rays are cut)")
 
 
-def plan_effects(facts: SceneFacts, method: str, uses: Collection[str], overrides: EffectOverrides | None = None,
-                 max_delta_depth: int = 8) -> EffectPlan:
-    """The plan for ``method``, which can use the fields named in ``uses`` (``"radiance"``,
+def choose_effects(facts: SceneFacts, method: str, uses: Collection[str], overrides: EffectOverrides | None = None,
+                 max_delta_depth: int = 8) -> Effects:
+    """The effects for ``method``, which can use the fields named in ``uses`` (``"radiance"``,
     ``"differential"``: the method class's ``uses``, from the registry of
     ``services.solver.estimators.methods``)."""
     overrides = overrides or EffectOverrides()
@@ -112,7 +113,7 @@ def plan_effects(facts: SceneFacts, method: str, uses: Collection[str], override
     for s in facts.scalars:
         reached = max(s.channel_magnitude) > 0
         if not reached and overrides.drop_unreachable:
-            scalars.append(ScalarPlan(s.label, False, (), f"no camera path of up to {facts.probe_depth + 1} bounces "
+            scalars.append(ScalarEffect(s.label, False, (), f"no camera path of up to {facts.probe_depth + 1} bounces "
                                                           f"depends on it: its gradient is zero", s.first_bounce,
                                       s.size))
             continue
@@ -120,7 +121,7 @@ def plan_effects(facts: SceneFacts, method: str, uses: Collection[str], override
             else (0, 1, 2)
         where = "seen directly" if s.first_bounce == 0 else (
             f"first reaches the image after {s.first_bounce} bounce(s)" if s.first_bounce is not None else "not probed")
-        scalars.append(ScalarPlan(s.label, True, channels, f"{s.owner} parameter, {where}; "
+        scalars.append(ScalarEffect(s.label, True, channels, f"{s.owner} parameter, {where}; "
                                                            f"changes channel(s) {', '.join('RGB'[c] for c in channels)}",
                                   s.first_bounce, s.size))
     active = [s for s, p in zip(facts.scalars, scalars) if p.active]
@@ -164,7 +165,7 @@ def plan_effects(facts: SceneFacts, method: str, uses: Collection[str], override
         if overrides.delta_depth < depth:
             warnings.append(f"delta_depth forced to {overrides.delta_depth}, the scene needs {depth}: "
                             f"light through longer mirror/glass chains is cut")
-        delta = Decision(overrides.delta_depth, f"forced by the job (planner: {depth}; {depth_reason})", True)
+        delta = EffectChoice(overrides.delta_depth, f"forced by the job (choose_effects: {depth}; {depth_reason})", True)
     else:
-        delta = Decision(depth, depth_reason)
-    return EffectPlan(emission, bsdf, radiance, differential, delta, scalars, warnings)
+        delta = EffectChoice(depth, depth_reason)
+    return Effects(emission, bsdf, radiance, differential, delta, scalars, warnings)

@@ -1,4 +1,4 @@
-"""The effect planner as pure logic: for each decision, facts where it applies."""
+"""`choose_effects` as pure logic: for each decision, facts where it applies."""
 
 from __future__ import annotations
 
@@ -7,13 +7,13 @@ import pytest
 from schemas.job import EffectOverrides
 from schemas.methods import Method
 from services.solver.estimators.methods import method_class
+from services.solver.scene.effects import choose_effects as choose_for
 from services.solver.scene.facts import ScalarFacts, SceneFacts
-from services.solver.scene.planner import plan_effects as plan_for
 
 
-def plan_effects(facts, method, overrides=None, **options):
-    """The plan for a method, with the fields the registry says it can use."""
-    return plan_for(facts, method, method_class(method).uses, overrides, **options)
+def choose_effects(facts, method, overrides=None, **options):
+    """The effects for a method, with the fields the registry says it can use."""
+    return choose_for(facts, method, method_class(method).uses, overrides, **options)
 
 
 def facts(*scalars, hits=1000, delta=(), counts=(65536,), unfinished=0):
@@ -39,23 +39,23 @@ UNREACHABLE = ScalarFacts("closet[0]", "bsdf", (0.0, 0.0, 0.0), None)
 
 
 def test_bsdf_parameters_with_interreflection_need_everything():
-    plan = plan_effects(facts(albedo(0), albedo(1)), "ndrf-rhs")
-    assert plan.bsdf_term.value and not plan.emission_term.value
-    assert plan.radiance_field.value and plan.differential_field.value
-    assert [s.channels for s in plan.scalars] == [(0,), (1,)]
+    effects = choose_effects(facts(albedo(0), albedo(1)), "ndrf-rhs")
+    assert effects.bsdf_term.value and not effects.emission_term.value
+    assert effects.radiance_field.value and effects.differential_field.value
+    assert [s.channels for s in effects.scalars] == [(0,), (1,)]
 
 
 def test_emitter_parameters_need_no_radiance_field():
-    plan = plan_effects(facts(radiance(0), radiance(2)), "ndrf-lhs")
-    assert plan.emission_term.value and not plan.bsdf_term.value
-    assert not plan.radiance_field.value and "vanishes" in plan.radiance_field.reason
-    assert plan.differential_field.value
+    effects = choose_effects(facts(radiance(0), radiance(2)), "ndrf-lhs")
+    assert effects.emission_term.value and not effects.bsdf_term.value
+    assert not effects.radiance_field.value and "vanishes" in effects.radiance_field.reason
+    assert effects.differential_field.value
 
 
 def test_without_interreflection_one_bounce_is_exact():
-    plan = plan_effects(facts(albedo(0), hits=0), "ndrf-lhs")
-    assert not plan.differential_field.value and not plan.radiance_field.value
-    assert "exact" in plan.differential_field.reason
+    effects = choose_effects(facts(albedo(0), hits=0), "ndrf-lhs")
+    assert not effects.differential_field.value and not effects.radiance_field.value
+    assert "exact" in effects.differential_field.reason
 
 
 EXPECTED_FIELDS = {Method.NDRF_LHS: (True, True), Method.NDRF_RHS: (True, True), Method.RADIANCE_CACHE: (True, False),
@@ -64,28 +64,28 @@ EXPECTED_FIELDS = {Method.NDRF_LHS: (True, True), Method.NDRF_RHS: (True, True),
 
 @pytest.mark.parametrize("method", list(Method))
 def test_fields_only_for_methods_that_use_them(method):
-    plan = plan_effects(facts(albedo(0)), method)
-    assert (plan.radiance_field.value, plan.differential_field.value) == EXPECTED_FIELDS[method]
+    effects = choose_effects(facts(albedo(0)), method)
+    assert (effects.radiance_field.value, effects.differential_field.value) == EXPECTED_FIELDS[method]
 
 
 def test_unreachable_scalars_are_dropped_with_a_reason():
-    plan = plan_effects(facts(albedo(0), UNREACHABLE), "ndrf-rhs")
-    assert [s.active for s in plan.scalars] == [True, False]
-    assert "gradient is zero" in plan.scalars[1].reason
-    kept = plan_effects(facts(albedo(0), UNREACHABLE), "ndrf-rhs", EffectOverrides(drop_unreachable=False))
+    effects = choose_effects(facts(albedo(0), UNREACHABLE), "ndrf-rhs")
+    assert [s.active for s in effects.scalars] == [True, False]
+    assert "gradient is zero" in effects.scalars[1].reason
+    kept = choose_effects(facts(albedo(0), UNREACHABLE), "ndrf-rhs", EffectOverrides(drop_unreachable=False))
     assert kept.scalars[1].active and kept.scalars[1].channels == (0, 1, 2)
 
 
 def test_only_unreachable_scalars_warn_and_train_nothing():
-    plan = plan_effects(facts(UNREACHABLE), "ndrf-rhs")
-    assert not plan.differential_field.value and not plan.radiance_field.value
-    assert any("every gradient is zero" in w for w in plan.warnings)
+    effects = choose_effects(facts(UNREACHABLE), "ndrf-rhs")
+    assert not effects.differential_field.value and not effects.radiance_field.value
+    assert any("every gradient is zero" in w for w in effects.warnings)
 
 
 def test_channels_merge_for_rgb_components_not_for_a_roughness():
-    plan = plan_effects(facts(albedo(2), ROUGHNESS), "ndrf-lhs")
-    assert [s.channels for s in plan.scalars] == [(2,), (0, 1, 2)]
-    unmerged = plan_effects(facts(albedo(2)), "ndrf-lhs", EffectOverrides(merge_channels=False))
+    effects = choose_effects(facts(albedo(2), ROUGHNESS), "ndrf-lhs")
+    assert [s.channels for s in effects.scalars] == [(2,), (0, 1, 2)]
+    unmerged = choose_effects(facts(albedo(2)), "ndrf-lhs", EffectOverrides(merge_channels=False))
     assert unmerged.scalars[0].channels == (0, 1, 2)
 
 
@@ -96,25 +96,25 @@ def test_channels_merge_for_rgb_components_not_for_a_roughness():
     (("m1", "m2"), (40000, 20000, 5000, 536), 9, 2, 2),   # facing mirrors beyond the cap
 ])
 def test_delta_depth_is_what_the_probe_needs(delta, counts, unfinished, cap, expected):
-    plan = plan_effects(facts(albedo(0), delta=delta, counts=counts, unfinished=unfinished), "ndrf-rhs",
+    effects = choose_effects(facts(albedo(0), delta=delta, counts=counts, unfinished=unfinished), "ndrf-rhs",
                         max_delta_depth=cap)
-    assert plan.delta_depth.value == expected
+    assert effects.delta_depth.value == expected
 
 
 def test_forcing_off_a_needed_effect_warns_and_forcing_on_is_recorded():
-    plan = plan_effects(facts(albedo(0)), "ndrf-rhs", EffectOverrides(differential_field="off", delta_depth=0))
-    assert not plan.differential_field.value and plan.differential_field.forced
-    assert any("differential_field forced off although it is needed" in w for w in plan.warnings)
-    on = plan_effects(facts(albedo(0), hits=0), "ndrf-rhs", EffectOverrides(differential_field="on"))
+    effects = choose_effects(facts(albedo(0)), "ndrf-rhs", EffectOverrides(differential_field="off", delta_depth=0))
+    assert not effects.differential_field.value and effects.differential_field.forced
+    assert any("differential_field forced off although it is needed" in w for w in effects.warnings)
+    on = choose_effects(facts(albedo(0), hits=0), "ndrf-rhs", EffectOverrides(differential_field="on"))
     assert on.differential_field.value and on.differential_field.forced and not on.warnings
     assert "not needed" in on.differential_field.reason
-    shallow = plan_effects(facts(albedo(0), delta=("mirror",), counts=(50000, 15536)), "ndrf-rhs",
+    shallow = choose_effects(facts(albedo(0), delta=("mirror",), counts=(50000, 15536)), "ndrf-rhs",
                            EffectOverrides(delta_depth=0))
     assert shallow.delta_depth.value == 0 and any("delta_depth forced" in w for w in shallow.warnings)
 
 
 def test_plan_serialises_with_every_reason():
-    plan = plan_effects(facts(albedo(0), UNREACHABLE), "ndrf-lhs").to_json()
+    effects = choose_effects(facts(albedo(0), UNREACHABLE), "ndrf-lhs").to_json()
     for key in ("emission_term", "bsdf_term", "radiance_field", "differential_field", "delta_depth"):
-        assert plan[key]["reason"]
-    assert all(s["reason"] for s in plan["scalars"])
+        assert effects[key]["reason"]
+    assert all(s["reason"] for s in effects["scalars"])

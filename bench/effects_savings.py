@@ -1,4 +1,4 @@
-"""What the effect plan saves: the same gradient computed with the plan, and with everything the
+"""What the chosen effects save: the same gradient computed with the plan, and with everything the
 plan skipped forced back on (``effects`` overrides). Time per training step (or per gradient for
 methods without fields) for each case, in one run."""
 
@@ -27,14 +27,14 @@ def _problem(scene: str, keys: list[str], method: str, overrides: dict):
     from schemas.job import EffectOverrides
     from services.solver.estimators.methods import method_class
     from services.solver.estimators.problem import Problem
+    from services.solver.scene.effects import choose_effects
     from services.solver.scene.facts import probe_scene
     from services.solver.scene.load import load_scene
     from services.solver.scene.params import ParameterSet
-    from services.solver.scene.planner import plan_effects
 
     loaded = load_scene(builtin=scene, resolution=(64, 64))
     prob = Problem(loaded, ParameterSet(loaded.params, keys))
-    prob.apply_plan(plan_effects(probe_scene(loaded, prob.parameters), method, method_class(method).uses,
+    prob.simulate(choose_effects(probe_scene(loaded, prob.parameters), method, method_class(method).uses,
                                 EffectOverrides(**overrides)))
     return prob
 
@@ -50,7 +50,7 @@ def run(quick: bool) -> dict:
         timings = {}
         for label, overrides in (("planned", {}), ("everything on", undo)):
             prob = _problem(scene, keys, method, overrides)
-            estimator = make_method(method, prob.plan)
+            estimator = make_method(method, prob.effects)
             trainer = trainer_for(prob, estimator, TrainingConfig(), seed=0)
             if trainer is not None:
                 trainer.train(3)
@@ -58,10 +58,10 @@ def run(quick: bool) -> dict:
                     trainer.train(steps)
                 timings[label] = t.seconds / steps
             else:
-                estimator.images(prob, fields_of(None), spp=16, seed=99)      # compile at the timed size
+                estimator.gradient_images(prob, fields_of(None), spp=16, seed=99)      # compile at the timed size
                 with timed() as t:
                     for r in range(5):
-                        estimator.images(prob, fields_of(None), spp=16, seed=r)
+                        estimator.gradient_images(prob, fields_of(None), spp=16, seed=r)
                 timings[label] = t.seconds / 5
         rows.append({"case": name, "unit": "s / training step" if trainer is not None else "s / gradient (16 spp)",
                      "planned": timings["planned"], "everything on": timings["everything on"],
