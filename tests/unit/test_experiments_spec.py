@@ -217,3 +217,13 @@ def test_curves_per_run_and_mean_over_seeds_per_configuration():
     assert prb.label == "method=prb" and prb.runs == [0, 1]
     assert prb.seconds == [1.5, 3.0] and prb.parameter_error == pytest.approx([0.5, 0.3])
     assert prb.parameter_error_spread == [[0.4, 0.6], [0.2, 0.4]]
+
+
+def test_an_experiment_sweeps_the_requested_accuracy_and_each_run_stops_at_its_own():
+    """Issue 37: "ask for an accuracy, and see the time it took" across an experiment's runs."""
+    base, sweep = normalize(spec(grid={"stop.standard_error": [0.01, 0.002]}))
+    assert check_sweep(sweep, base) == ["stop.standard_error"]
+    jobs = validate_runs(base, expand(sweep, base), Limits(), None)
+    assert [job.stop.standard_error for job in jobs] == [0.01, 0.002]
+    with pytest.raises(InvalidExperiment, match="stop"):
+        validate_runs(base, expand(normalize(spec(grid={"stop.standard_error": [-1.0]}))[1], base), Limits(), None)
