@@ -28,3 +28,15 @@ def run_job(job, folder, **options):
     from services.jobs.local import run_local
 
     return run_local(JobSpec.model_validate(job), folder, **options)
+
+
+def small_room_job(**extra) -> dict:
+    """``room-open-8`` at 16x16: the walls' and the sphere's albedo from 0.5 grey, 16-spp targets
+    (the default recipe's tests: batches of views, the answer, the stop)."""
+    job = {"scene": {"builtin": "room-open-8"},
+           "parameters": [{"key": "walls.reflectance.value", "init": [0.5, 0.5, 0.5]},
+                          {"key": "ball.reflectance.value", "init": [0.5, 0.5, 0.5]}],
+           "targets": {"synthetic": {"values": {"walls.reflectance.value": [0.85, 0.85, 0.85],
+                                                "ball.reflectance.value": [0.8, 0.2, 0.1]}, "spp": 16}},
+           "render": {"resolution": [16, 16]}}
+    return {**job, **extra}

@@ -14,13 +14,9 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _job(**extra) -> dict:
-    job = {"scene": {"builtin": "room-open-8"},
-           "parameters": [{"key": "walls.reflectance.value", "init": [0.5, 0.5, 0.5]},
-                          {"key": "ball.reflectance.value", "init": [0.5, 0.5, 0.5]}],
-           "targets": {"synthetic": {"values": {"walls.reflectance.value": [0.85, 0.85, 0.85],
-                                                "ball.reflectance.value": [0.8, 0.2, 0.1]}, "spp": 16}},
-           "render": {"resolution": [16, 16]}, "iterations": 60, "seed": 2}
-    return {**job, **extra}
+    from tests.support.jobs import small_room_job
+
+    return small_room_job(**{"iterations": 60, "seed": 2, **extra})
 
 
 def test_the_run_returns_its_estimate_with_standard_errors_and_the_last_iterate(mi, tmp_path):

@@ -11,13 +11,9 @@ import numpy as np
 
 
 def _job(**extra) -> dict:
-    job = {"scene": {"builtin": "room-open-8"},
-           "parameters": [{"key": "walls.reflectance.value", "init": [0.5, 0.5, 0.5]},
-                          {"key": "ball.reflectance.value", "init": [0.5, 0.5, 0.5]}],
-           "targets": {"synthetic": {"values": {"walls.reflectance.value": [0.85, 0.85, 0.85],
-                                                "ball.reflectance.value": [0.8, 0.2, 0.1]}, "spp": 16}},
-           "render": {"resolution": [16, 16]}, "iterations": 12, "checkpoint_every": 2, "seed": 5}
-    return {**job, **extra}
+    from tests.support.jobs import small_room_job
+
+    return small_room_job(**{"iterations": 12, "checkpoint_every": 2, "seed": 5, **extra})
 
 
 def test_the_default_recipe_batches_views_and_resumes_exactly(mi, tmp_path):
