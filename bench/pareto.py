@@ -2,7 +2,8 @@
 budget, for the default job and for the best Mitsuba tutorial loop given the same time.
 
 ``python -m bench.pareto [--jobs demo,room-open-8,room-closed-8,hidden-object,textured-box]
-[--seeds 0,1,2] [--budgets 0.5,1,2,4] [--loop-views 1,2,all] [--out bench/results/pareto.json]``
+[--seeds 0,1,2] [--budgets 0.5,1,2,4] [--loop-views 1,2,all] [--out bench/results/pareto.json]
+[--reuse-default]``
 
 For each job of ``examples/`` (reduced to its scene, parameters, targets and iterations: what a
 user sets) and each budget ``m``, the default job runs ``m x`` the example's iterations, once per
@@ -15,9 +16,11 @@ took.
 The loop is :mod:`bench.mitsuba_loop`'s tutorial loop (``prb``, 1 spp, Russian roulette from depth
 5, Adam (0.8, 0.99) with the learning rate decaying from the job's 0.05 to 0.005 over the run),
 with ``v`` random views per iteration for each ``v`` of ``--loop-views``, on the same targets.
-Each setting runs for as many iterations as fit in the default job's median time at that budget
-(its seconds per iteration measured on a short run first), and returns its last iterate: the
-user's answer. The best loop at a budget is the setting with the smallest median error there.
+Each setting plans as many iterations as fit in the default job's median time at that budget
+(its seconds per iteration measured on a short run first, then on the previous budget's run: an
+iteration costs more as a bright room's albedos rise), its learning rate decaying over them, is
+cut at twice that time, and returns its last iterate: the user's answer. The best loop at a
+budget is the setting with the smallest median error there.
 
 Error: the largest ``|p - truth|`` over the scalars; for a texture job the RMSE over its texels
 (a texel's worst error is noise). Reported per job and budget: the median and the range over the
@@ -114,8 +117,13 @@ def run_loops(job: dict, seed: int, views: list[int | None], seconds: dict[float
             probe = run_loop(prepared, setting, target_error=0.0, iterations=10, seed=seed)
             per_iteration = probe["curve"][-1]["seconds"] / len(probe["curve"])
             for budget, target_seconds in seconds.items():
+                # the learning rate decays over the iterations the loop plans, as a user's would; an
+                # iteration's cost grows as the albedos brighten (longer paths), so each budget plans
+                # with the rate the previous one measured, and a run is cut at twice its time
                 total = max(2, int(round(target_seconds / per_iteration)))
-                result = run_loop(prepared, setting, target_error=0.0, iterations=total, seed=seed, truth=truth)
+                result = run_loop(prepared, setting, target_error=0.0, iterations=total, seed=seed, truth=truth,
+                                  budget=2.0 * target_seconds)
+                per_iteration = result["curve"][-1]["seconds"] / len(result["curve"])
                 final = result["curve"][-1]
                 out.setdefault(setting.label, {})[str(budget)] = {
                     "iterations": total, "seconds": final["seconds"],
@@ -201,6 +209,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--budgets", default="0.5,1,2,4", help="multiples of each example's iterations")
     parser.add_argument("--loop-views", default="1,2,all")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "pareto.json")
+    parser.add_argument("--reuse-default", action="store_true",
+                        help="keep the default job's runs already in --out for the same budgets and seeds (rerun "
+                             "only the loops)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     seeds = [int(v) for v in args.seeds.split(",")]
@@ -211,8 +222,12 @@ def main(argv: list[str] | None = None) -> None:
         job = json.loads((ROOT / "examples" / f"{name}.json").read_text())
         texture = any(p["key"].endswith(".data") for p in job["parameters"])
         rows: dict = {"texture": texture, "default": {}, "loops": {}}
+        done = results.get(name, {}).get("default", {}) if args.reuse_default else {}
         for budget in budgets:
             iterations = max(2, int(round(budget * job["iterations"])))
+            if len(done.get(str(budget), [])) == len(seeds):      # --reuse-default: measured already
+                rows["default"][str(budget)] = done[str(budget)]
+                continue
             rows["default"][str(budget)] = []
             for seed in seeds:
                 run = run_default(job, seed, iterations)
