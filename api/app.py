@@ -17,6 +17,7 @@ from importlib.metadata import version
 from fastapi import FastAPI
 
 from api import accesslog, problems
+from api.admission import Admission
 from api.guard import Guard
 from api.routes import artifacts, events, experiments, field_views, health, jobs, scenes
 from api.routes.health import Snapshot
@@ -39,6 +40,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
         runtime = build_runtime(settings)
         runtime.blocking = anyio.CapacityLimiter(settings.preflight_workers)
+        runtime.admission = Admission(runtime.blocking, settings.admission_per_key)
         app.state.runtime = runtime
         app.state.snapshot = Snapshot(runtime)
         app.state.device = DeviceReport()

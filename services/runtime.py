@@ -64,6 +64,7 @@ class Runtime:
     slots: StreamSlots | None = None
     redis: redis.Redis | None = None  # the client of REDIS_URL (None: the embedded default)
     blocking: Any = None  # the API's limiter of blocking work (an anyio CapacityLimiter)
+    admission: Any = None  # the same work in a line per key first (api.admission.Admission)
     workers: list = field(default_factory=list)
     threads: list = field(default_factory=list)
     runner_restarts: int = 0

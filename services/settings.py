@@ -57,6 +57,11 @@ class Limits(BaseSettings):
     streams_per_key: int = Field(64, ge=1, description="Most open event streams of one API key.")
     experiment_runs: int = Field(200, ge=1, description="Most runs of one experiment (grid x samples x seeds, "
                                                         "appends included).")
+    experiment_checks: int = Field(4, ge=1, le=1000,
+                                   description="Most sandboxed scene checks one experiment (or append) runs when "
+                                               "it is created: one per distinct scene, parameters, targets and "
+                                               "render settings, the first ones; the runs of the others are "
+                                               "checked by the worker when they run, and fail there naming why.")
     # JSON bodies are checked by a scan of the raw bytes before they are parsed (api.bodies): the
     # work and memory of parsing and validating a body are bounded by these, not by its size.
     json_depth: int = Field(32, ge=4, le=1000, description="Deepest nesting of arrays and objects in a JSON body "
@@ -142,7 +147,15 @@ class Settings(BaseSettings):
     max_attempts: int = Field(3, ge=1, le=100, description="Attempts before a job that keeps crashing its "
                                                           "worker is failed.")
     embedded_workers: int = Field(1, ge=1, le=16, description="Worker threads of the embedded mode.")
-    preflight_workers: int = Field(2, ge=1, le=64, description="Scene loads running at once in the API.")
+    preflight_workers: int = Field(2, ge=1, le=64, description="Scene loads, views and other blocking admission "
+                                                               "work running at once in one API process, all "
+                                                               "keys together.")
+    admission_per_key: int = Field(1, ge=1, le=64, description="Of those, the most one key runs at once (its "
+                                                               "further work waits in a line of its own, not in "
+                                                               "the shared one): keep it below "
+                                                               "preflight_workers, so that a key with nothing in "
+                                                               "flight never waits behind another key's scene "
+                                                               "checks or views.")
     redis_connections: int = Field(32, ge=2, le=1024, description="Redis connections of one API process for short "
                                                                   "commands (stream slots, event reads); a stream "
                                                                   "that finds none free within a second is refused "

@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 from typing import Annotated
 
-import anyio
 from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from fastapi.responses import PlainTextResponse, StreamingResponse
 
@@ -87,7 +86,7 @@ async def create_experiment(spec: ExperimentSpec, response: Response, runtime: R
         return runtime.experiments.create(spec, caller, preflight=preflight)
 
     try:
-        record = await anyio.to_thread.run_sync(create, limiter=runtime.blocking)
+        record = await runtime.admission.run(caller.owner, create)
     except InvalidExperiment as exc:
         raise _invalid(exc) from None
     return _accepted(response, record, [run.index for run in record.runs])
@@ -191,7 +190,7 @@ async def append_runs(exp_id: str, more: ExperimentAppend, response: Response, r
         return runtime.experiments.append(exp_id, more, caller, preflight=preflight)
 
     try:
-        record, added = await anyio.to_thread.run_sync(append, limiter=runtime.blocking)
+        record, added = await runtime.admission.run(caller.owner, append)
     except InvalidExperiment as exc:
         raise _invalid(exc) from None
     return _accepted(response, record, added)

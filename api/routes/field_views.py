@@ -7,7 +7,6 @@ import base64
 import re
 from typing import Annotated
 
-import anyio
 from fastapi import APIRouter
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, Response
@@ -42,8 +41,8 @@ async def create(job_id: str, request: ViewRequest, runtime: RuntimeDep, caller:
     built a ``422``."""
     files = runtime.service.files(job_id, caller)
     try:
-        view_id, written, meta = await anyio.to_thread.run_sync(create_view, files, request, runtime.settings.limits,
-                                                                runtime.view_sessions, limiter=runtime.blocking)
+        view_id, written, meta = await runtime.admission.run(caller.owner, create_view, files, request,
+                                                             runtime.settings.limits, runtime.view_sessions)
     except NoCheckpoint as exc:
         raise ProblemError(409, "Conflict", str(exc), slug="no-checkpoint") from None
     except OverBudget as exc:

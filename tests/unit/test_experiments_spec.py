@@ -217,3 +217,11 @@ def test_curves_per_run_and_mean_over_seeds_per_configuration():
     assert prb.label == "method=prb" and prb.runs == [0, 1]
     assert prb.seconds == [1.5, 3.0] and prb.parameter_error == pytest.approx([0.5, 0.3])
     assert prb.parameter_error_spread == [[0.4, 0.6], [0.2, 0.4]]
+
+
+def test_an_experiment_loads_at_most_experiment_checks_distinct_scenes_when_it_is_created():
+    """Issue 38: 40 distinct render settings were 40 sandboxed checks in a row in the API."""
+    calls = []
+    base, sweep = normalize(spec(grid={"render.spp": list(range(1, 41))}))
+    specs = validate_runs(base, expand(sweep, base), Limits(experiment_checks=4), lambda job, _: calls.append(job))
+    assert len(specs) == 40 and [job.render.spp for job in calls] == [1, 2, 3, 4]
