@@ -40,6 +40,9 @@ class Limits(BaseSettings):
     mesh_bytes: int = Field(32 << 20, ge=1024, description="Largest single uploaded file (mesh, texture).")
     image_pixels: int = Field(4 << 20, ge=1, description="Largest target image (width x height), read from "
                                                           "its header before it is decoded.")
+    image_values: int = Field(16 << 20, ge=1, description="Most decoded values of a target image (width x height "
+                                                          "x channels), read from its header before it is "
+                                                          "decoded: an EXR may declare hundreds of channels.")
     training_points: int = Field(65536, ge=64, description="Largest residual batch N x M per step.")
     training_steps: int = Field(200_000, ge=1, description="Most training steps of one job (warm-up + "
                                                            "iterations x steps per iteration).")

@@ -44,6 +44,7 @@ from services.jobs.isolation import Child, ChildFailed, ChildLimits, kernel_cach
 from services.jobs.preflight import upload_limits
 from services.jobs.state import Fenced, JobStates
 from services.jobs.warm_start import source_checkpoint
+from services.limits import check_limits, check_target_headers
 from services.settings import Limits
 from services.store.base import StoreFull
 from services.store.job import JobFiles
@@ -128,6 +129,10 @@ class AttemptRunner:
         ``folder``: the child's start frame. A job the checks refuse raises :class:`InvalidJob`."""
         files = self.states.files(job_id)
         spec = JobSpec.model_validate(files.read(JobFiles.SPEC))
+        # the caps and the image headers again: an experiment's run whose scene setting was not
+        # loaded at creation (NDRF_MAX_EXPERIMENT_CHECKS) is checked here, and fails naming why
+        check_limits(spec, self.limits)
+        check_target_headers(spec, self.limits)
         folder.mkdir(parents=True, exist_ok=True)
         scene_file = stage_scene(spec.scene, folder / "scene", upload_limits(self.limits))
         resume = files.resume_checkpoint()

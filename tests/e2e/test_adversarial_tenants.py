@@ -8,6 +8,7 @@ The worker starts only for the scheduling case: the cases before it count queued
 
 from __future__ import annotations
 
+import base64
 import json
 import signal
 import statistics
@@ -18,6 +19,7 @@ import pytest
 
 from harness.cluster import Api, Process, Redis, small_job, start_api, wait_until
 from tests.support.attack import Outcome, Watch, report, rss_mib
+from tests.support.payloads import exr_header
 
 pytestmark = pytest.mark.slow
 
@@ -86,6 +88,22 @@ def test_concurrent_submissions_never_pass_the_active_cap(stack):
            f"{active} active, answers {sorted(answers)}")
     cancel_all(carol)
     assert active == ACTIVE_CAP and sorted(answers) == [202] * ACTIVE_CAP + [429] * (2 * ACTIVE_CAP), answers
+
+
+def test_an_exr_declaring_700_channels_is_refused_from_its_header(stack):
+    """A 5.7 MB EXR declaring 700 channels (5.5 GiB decoded): the preflight children took 12.5 GB
+    for 34 s before each 422 (pixels were counted, channels were not)."""
+    alice = stack["api"]["alice"]
+    exr = exr_header(1400, 1400, [f"c{i}" for i in range(700)])
+    job = {**small_job("direct"), "targets": {"images": [{"sensor": 0, "data": base64.b64encode(exr).decode()}]}}
+    with Watch(stack["proc"].pid, alice.base, stack["idle"]) as watch:
+        started = time.monotonic()
+        status, _, problem = alice.json("POST", "/v1/jobs", job)
+        seconds = time.monotonic() - started
+        time.sleep(0.3)
+    record(stack, watch, "EXR header of 700 channels", status, seconds, "422 before any decoder")
+    assert status == 422 and "NDRF_MAX_IMAGE_VALUES" in problem["detail"], problem
+    assert seconds < 1.0
 
 
 def _bob_submit_seconds(bob: Api, seed: int) -> float:
