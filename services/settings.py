@@ -57,9 +57,23 @@ class Limits(BaseSettings):
     preflight_seconds: float = Field(120.0, ge=1.0, description="Wall-clock limit of loading a scene at "
                                                                  "submission.")
     active_jobs_per_key: int = Field(32, ge=1, description="Most queued or running jobs of one API key.")
+    running_jobs_per_key: int = Field(4, ge=0, le=10_000,
+                                      description="Most running jobs of one API key at once, across every "
+                                                  "worker: a free worker takes another key's job instead, or waits "
+                                                  "(0: no cap). Within it, keys take turns (least recently served "
+                                                  "first).")
+    key_bytes: int = Field(20 << 30, ge=1 << 20, description="Most bytes of stored files of one API key (all its "
+                                                             "jobs and views): a submission of a key at it is a "
+                                                             "507, and a running job gets at most what is left "
+                                                             "(NDRF_MAX_JOB_BYTES or less) and fails naming this "
+                                                             "limit when it would pass it; nothing written is "
+                                                             "lost.")
     streams_per_key: int = Field(64, ge=1, description="Most open event streams of one API key.")
     experiment_runs: int = Field(200, ge=1, description="Most runs of one experiment (grid x samples x seeds, "
                                                         "appends included).")
+    experiments_per_key: int = Field(20, ge=1, le=10_000, description="Most unfinished experiments of one API key "
+                                                                      "(a 429 beyond): each is refreshed by the "
+                                                                      "scheduler while it runs.")
     experiment_checks: int = Field(4, ge=1, le=1000,
                                    description="Most sandboxed scene checks one experiment (or append) runs when "
                                                "it is created: one per distinct scene, parameters, targets and "

@@ -16,6 +16,7 @@ from schemas.errors import InvalidJob
 from schemas.job import JobSpec
 from schemas.records import JobAccepted, JobPage, JobPublic, JobStatus
 from services.jobs.preflight import preflight
+from services.jobs.quotas import StorageQuota
 from services.jobs.service import TooManyJobs
 from services.jobs.warm_start import source_checkpoint
 from services.runtime import Runtime
@@ -37,7 +38,8 @@ async def validate_job(spec: JobSpec, runtime: Runtime, owner: str) -> None:
 
 @router.post("", status_code=202, response_model=JobAccepted,
              responses={409: conflict("idempotency-conflict"), 413: {"model": ProblemDetails},
-                        422: {"model": ProblemDetails}, 429: {"model": ProblemDetails}},
+                        422: {"model": ProblemDetails}, 429: {"model": ProblemDetails},
+                        507: {"model": ProblemDetails}},
              summary="Submit a job")
 async def submit_job(spec: JobSpec, response: Response, runtime: RuntimeDep, caller: CallerDep,
                      idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key", max_length=200,
@@ -62,12 +64,15 @@ async def submit_job(spec: JobSpec, response: Response, runtime: RuntimeDep, cal
                                errors=[(exc.field, exc.message)]) from None
 
     def submit():
-        return service.submit(spec, caller, idempotency_key, max_active=runtime.settings.limits.active_jobs_per_key)
+        limits = runtime.settings.limits
+        return service.submit(spec, caller, idempotency_key, max_active=limits.active_jobs_per_key, limits=limits)
 
     try:
         record, _ = await runtime.admission.run(caller.owner, submit)
     except TooManyJobs as exc:
         raise ProblemError(429, "Too many jobs", str(exc), slug="too-many-jobs", headers={"Retry-After": "30"}) from None
+    except StorageQuota as exc:
+        raise ProblemError(507, "Storage quota reached", str(exc), slug="storage-quota") from None
     return _accepted(response, record.id, record.status, await _fingerprint(spec), record.fingerprint)
 
 

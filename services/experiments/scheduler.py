@@ -41,6 +41,7 @@ from services.experiments import warm_start
 from services.experiments.expand import job_document
 from services.experiments.service import ExperimentService
 from services.experiments.state import UnknownExperiment
+from services.jobs.quotas import StorageQuota
 from services.jobs.service import Caller, TooManyJobs
 from services.jobs.state import Conflict, UnknownJob
 from services.queue.base import JobQueue
@@ -232,8 +233,8 @@ class Scheduler:
         try:
             job, _ = self.jobs.submit(spec, Caller(record.owner), f"experiment:{exp_id}:{index}:{admission}",
                                       max_active=self.experiments.limits.active_jobs_per_key,
-                                      experiment=exp_id, varied=run.values)
-        except TooManyJobs as exc:       # the owner's cap on active jobs: the run waits for a slot
+                                      limits=self.experiments.limits, experiment=exp_id, varied=run.values)
+        except (TooManyJobs, StorageQuota) as exc:   # the owner's caps: the run waits for room
             log.info("experiment %s run %d waits: %s", exp_id, index, exc)
             self._release(exp_id, index, admission)
             return None

@@ -42,6 +42,7 @@ from services.jobs.artifacts import BudgetExceeded, JobWriter
 from services.jobs.frames import FrameError, array_from, read_frame, start_frame, write_frame
 from services.jobs.isolation import Child, ChildFailed, ChildLimits, kernel_cache, sandboxed
 from services.jobs.preflight import upload_limits
+from services.jobs.quotas import attempt_budget
 from services.jobs.state import Fenced, JobStates
 from services.jobs.warm_start import source_checkpoint
 from services.limits import check_limits, check_target_headers
@@ -101,7 +102,8 @@ class AttemptRunner:
                  stop: Callable[[], Outcome | None]) -> AttemptResult:
         """Stage the attempt's files, start its child, supervise it. Whatever ends the attempt, the
         child is killed and its frame reader joined (``finally``)."""
-        writer = JobWriter(self.states, job_id, attempt=attempt, byte_budget=self.limits.job_bytes)
+        budget = attempt_budget(self.states, job_id, self.limits)
+        writer = JobWriter(self.states, job_id, attempt=attempt, byte_budget=budget.bytes, budget_limit=budget.limit)
         writer.guard()  # before staging anything: a stale attempt does nothing at all
         try:
             start = self._stage(job_id, folder)

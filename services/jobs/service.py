@@ -22,8 +22,10 @@ from datetime import UTC, datetime, timedelta
 
 from schemas.job import JobSpec
 from schemas.records import ACTIVE, FINISHED, JobRecord, JobStatus
+from services.jobs.quotas import check_room
 from services.jobs.state import Conflict, JobStates, UnknownJob, now_iso
 from services.queue.base import EventBus, JobQueue, LockBusy
+from services.settings import Limits
 from services.store.base import ArtifactStore
 from services.store.job import JobFiles
 
@@ -120,10 +122,13 @@ class JobService:
             return None
 
     def submit(self, spec: JobSpec, caller: Caller = SYSTEM, idempotency_key: str | None = None,
-               max_active: int | None = None, **extra) -> tuple[JobRecord, bool]:
+               max_active: int | None = None, limits: Limits | None = None, **extra) -> tuple[JobRecord, bool]:
         """Create and enqueue a job; returns ``(record, created)``. With an ``idempotency_key`` the
         caller used before, returns that job instead (``created`` False). ``extra`` are further
-        record fields (an experiment's id and varied values)."""
+        record fields (an experiment's id and varied values). With ``limits``, a key whose files
+        reached ``key_bytes`` is refused (:class:`~services.jobs.quotas.StorageQuota`)."""
+        if limits is not None:
+            check_room(self.states, caller.owner, limits)
         job_id = new_job_id()
         if idempotency_key:
             existing = self._claim(caller, idempotency_key, job_id)

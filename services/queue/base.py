@@ -105,6 +105,12 @@ class JobQueue(ABC):
         """``{"waiting": ..., "leased": ...}``."""
 
     @abstractmethod
+    def running(self, owner: str) -> int:
+        """Jobs of ``owner`` handed to workers and not yet acked (at most the queue's
+        ``running_per_owner``, ``NDRF_MAX_RUNNING_JOBS_PER_KEY``, when set: a worker takes another
+        owner's job rather than pass it)."""
+
+    @abstractmethod
     def queued_ids(self) -> set[str]:
         """Job ids the queue holds (waiting, leased, or adopted while running), for the reconciler."""
 

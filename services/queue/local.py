@@ -33,8 +33,10 @@ class _Delivery:
 
 
 class LocalJobQueue(JobQueue):
-    def __init__(self, lease_seconds: float = 30.0):
-        self.lease_seconds = lease_seconds
+    def __init__(self, lease_seconds: float = 30.0, running_per_owner: int = 0):
+        self.lease_seconds, self.running_per_owner = lease_seconds, running_per_owner
+        self._running: dict[str, set[str]] = defaultdict(set)   # owner -> jobs handed out, not acked
+        self._job_owner: dict[str, str] = {}
         self._ready: deque[tuple[str, str, int]] = deque()      # handed back: (job, entry, deliveries so far)
         self._waiting: dict[str, deque[tuple[str, str, int]]] = {}   # owner -> its waiting jobs
         self._served: dict[str, int] = {}                       # owner -> turn it was last served at
@@ -69,12 +71,18 @@ class LocalJobQueue(JobQueue):
             return self._ready.popleft()
         if not self._waiting:
             return None
-        owner = min(self._waiting, key=lambda o: (self._served.get(o, 0), o))
+        cap = self.running_per_owner
+        open_ = [o for o in self._waiting if not cap or len(self._running[o]) < cap]
+        if not open_:
+            return None
+        owner = min(open_, key=lambda o: (self._served.get(o, 0), o))
         jobs = self._waiting[owner]
         got = jobs.popleft()
         if not jobs:
             del self._waiting[owner]
         self._served[owner] = next(self._turns)
+        self._running[owner].add(got[0])
+        self._job_owner[got[0]] = owner
         return got
 
     def lease(self, consumer: str, block_seconds: float) -> Lease | None:
@@ -119,6 +127,10 @@ class LocalJobQueue(JobQueue):
         if held is None or held.consumer != lease.consumer:
             return False
         del self._leased[lease.entry_id]
+        owner = self._job_owner.pop(lease.job_id, None)
+        if owner is not None:
+            self._running[owner].discard(lease.job_id)
+            self._changed.notify_all()
         if self._markers.get(lease.job_id) == lease.entry_id:
             del self._markers[lease.job_id]
         if attempt:
@@ -145,6 +157,10 @@ class LocalJobQueue(JobQueue):
     def queued_ids(self) -> set[str]:
         with self._changed:
             return set(self._markers)
+
+    def running(self, owner: str) -> int:
+        with self._changed:
+            return len(self._running.get(owner, ()))
 
     @contextmanager
     def hold(self, name: str, seconds: float = 60.0, wait: float = 30.0) -> Iterator[None]:

@@ -8,13 +8,17 @@
                           job, so an owner that comes back is not served ahead of its turn)
     ndrf:turn             the turn counter
     ndrf:wake             a short list pushed on every enqueue: idle workers block on it (BLPOP)
+    ndrf:running:<owner>  set of the owner's jobs handed out by DISPATCH and not yet acked
+    ndrf:job-owner        hash job -> owner, for those jobs (so that an ack finds the set)
     ndrf:lock:<name>      a per-key lock (SET NX PX with a token; released by compare-and-delete)
 
 ``enqueue`` puts a job in its owner's list; the stream ``ndrf:jobs`` then holds only jobs handed
 to a worker: :data:`DISPATCH` first reads an entry of the stream nobody read yet (a job handed back
 by ``requeue``, or one whose dispatcher died before reading it), otherwise moves the next job of
-the least recently served owner into the stream and reads it, in one step. Leases, renewals, acks
-and takeovers keep working on the stream as before.
+the least recently served owner that runs fewer than its cap of jobs (``NDRF_MAX_RUNNING_JOBS_PER_KEY``)
+into the stream and reads it, in one step. Leases, renewals, acks and takeovers keep working on the
+stream as before; an ack (or a hand-back) takes the job out of its owner's running set. A job handed
+back is read again ahead of the others without counting against its owner's cap (it ran before).
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ OWNERS = "ndrf:owners"
 SERVED = "ndrf:served"
 TURN = "ndrf:turn"
 WAKE = "ndrf:wake"
+RUNNING = "ndrf:running:"
 LOCK = "ndrf:lock:{}"
 WAKE_KEEP = 16
 
@@ -44,7 +49,7 @@ redis.call('LTRIM', KEYS[6], -16, -1)
 return 'w'
 """
 
-# KEYS stream, markers, owners, served, turn   ARGV group, consumer
+# KEYS stream, markers, owners, served, turn   ARGV group, consumer, running cap per owner (0: none)
 DISPATCH = """
 redis.pcall('XGROUP', 'CREATE', KEYS[1], ARGV[1], '0', 'MKSTREAM')
 local function read()
@@ -52,10 +57,16 @@ local function read()
 end
 local got = read()
 if got then return got end
+local cap = tonumber(ARGV[3])
+local function pick()
+  for _, o in ipairs(redis.call('ZRANGE', KEYS[3], 0, -1)) do
+    if cap == 0 or redis.call('SCARD', 'ndrf:running:' .. o) < cap then return o end
+  end
+  return nil
+end
 for _ = 1, 256 do
-  local top = redis.call('ZRANGE', KEYS[3], 0, 0)
-  if #top == 0 then return false end
-  local owner = top[1]
+  local owner = pick()
+  if not owner then return false end
   local list = 'ndrf:wait:' .. owner
   local job = redis.call('LPOP', list)
   if not job then
@@ -68,11 +79,24 @@ for _ = 1, 256 do
     if redis.call('HGET', KEYS[2], job) == 'w' then
       local id = redis.call('XADD', KEYS[1], '*', 'job', job)
       redis.call('HSET', KEYS[2], job, id)
+      redis.call('SADD', 'ndrf:running:' .. owner, job)
+      redis.call('HSET', 'ndrf:job-owner', job, owner)
       return read()
     end
   end
 end
 return false
+"""
+
+# Lua run by the queue's release script when a delivery is acked or handed back (ARGV[4]: the job)
+RELEASE_RUNNING = """
+local runner = redis.call('HGET', 'ndrf:job-owner', ARGV[4])
+if runner then
+  redis.call('SREM', 'ndrf:running:' .. runner, ARGV[4])
+  redis.call('HDEL', 'ndrf:job-owner', ARGV[4])
+  redis.call('RPUSH', 'ndrf:wake', '1')
+  redis.call('LTRIM', 'ndrf:wake', -16, -1)
+end
 """
 
 # KEYS owners   the number of jobs waiting in every owner's list

@@ -88,7 +88,7 @@ return 2
 """
 
 # KEYS stream, markers, beat   ARGV group, consumer, entry, job, attempt, requeue (1/0)
-_RELEASE = _OWNER + """
+_RELEASE = _OWNER + "local function release_running()\n" + fair.RELEASE_RUNNING + "end\n" + """
 local mine = 0
 local m = redis.call('HGET', KEYS[2], ARGV[4])
 if p then
@@ -103,6 +103,7 @@ elseif ARGV[5] ~= '' and m == '~' .. ARGV[5] then
   mine = 1
 end
 if KEYS[3] ~= '' then redis.call('DEL', KEYS[3]) end
+if mine == 1 then release_running() end
 if mine == 1 and ARGV[6] == '1' and not m then
   redis.pcall('XGROUP', 'CREATE', KEYS[1], ARGV[1], '0', 'MKSTREAM')
   local id = redis.call('XADD', KEYS[1], '*', 'job', ARGV[4])
@@ -187,8 +188,9 @@ def connect(url: str) -> redis.Redis:
 
 
 class RedisJobQueue(JobQueue):
-    def __init__(self, client: redis.Redis, lease_seconds: float):
+    def __init__(self, client: redis.Redis, lease_seconds: float, running_per_owner: int = 0):
         self.redis = client
+        self.running_per_owner = running_per_owner
         self.lease_seconds = lease_seconds
         self.lease_ms = int(lease_seconds * 1000)
         self._enqueue = client.register_script(fair.ENQUEUE)
@@ -224,7 +226,8 @@ class RedisJobQueue(JobQueue):
                              args=[job_id, GROUP, owner]) is not None
 
     def _dispatched(self, consumer: str) -> list[Entry]:
-        reply = self._dispatch(keys=[STREAM, MARKERS, fair.OWNERS, fair.SERVED, fair.TURN], args=[GROUP, consumer])
+        reply = self._dispatch(keys=[STREAM, MARKERS, fair.OWNERS, fair.SERVED, fair.TURN],
+                               args=[GROUP, consumer, self.running_per_owner])
         # a script's XREADGROUP reply is raw: [[stream, [[id, [field, value, ...]]]]]
         entries = reply[0][1] if reply else []
         return [(str(entry_id), dict(zip(flat[::2], flat[1::2]))) for entry_id, flat in entries]
@@ -300,6 +303,9 @@ class RedisJobQueue(JobQueue):
 
     def queued_ids(self) -> set[str]:
         return set(self._held(keys=[MARKERS]))
+
+    def running(self, owner: str) -> int:
+        return int(self.redis.scard(fair.RUNNING + owner))
 
     def orphans(self, candidates: Iterable[str], grace_seconds: float) -> set[str]:
         jobs = sorted(set(candidates))

@@ -99,3 +99,53 @@ def test_a_worker_waiting_for_work_wakes_on_enqueue(kind, redis_server):
     queue.enqueue("late", owner="bob")
     waiter.join(3.0)
     assert not waiter.is_alive() and got and got[0].job_id == "late"
+
+
+@pytest.mark.parametrize("kind", ["redis", "local"])
+def test_a_key_runs_at_most_its_cap_of_jobs_and_a_free_worker_takes_another_keys(kind, redis_server):
+    queue = make_queue(kind, redis_server)
+    queue.running_per_owner = 2
+    for i in range(4):
+        queue.enqueue(f"alice-{i}", owner="alice")
+    first, second = queue.lease("w1", 0.1), queue.lease("w2", 0.1)
+    assert (first.job_id, second.job_id, queue.running("alice")) == ("alice-0", "alice-1", 2)
+    assert queue.lease("w3", 0.05) is None                       # alice is at her cap
+    queue.enqueue("bob-0", owner="bob")
+    assert queue.lease("w3", 0.1).job_id == "bob-0"
+    assert queue.ack(first, "w1#1") and queue.running("alice") == 1
+    assert queue.lease("w1", 0.1).job_id == "alice-2"
+
+
+def test_a_key_at_its_storage_quota_is_refused_and_a_job_gets_what_the_key_has_left(tmp_path):
+    from services.jobs.quotas import StorageQuota, attempt_budget
+    from services.settings import Limits
+
+    service = JobService(FolderStore(tmp_path), LocalJobQueue(), LocalEventBus())
+    spec = JobSpec.model_validate(small_job("direct"))
+    limits = Limits(key_bytes=3 << 20, job_bytes=2 << 20)
+    first, _ = service.submit(spec, ALICE, limits=limits)
+    assert attempt_budget(service.states, first.id, limits).limit == "NDRF_MAX_JOB_BYTES"
+    service.store.put(f"{first.id}/blob", b"x" * (2 << 20))         # what a job wrote
+    second, _ = service.submit(spec, ALICE, limits=limits)
+    budget = attempt_budget(service.states, second.id, limits)
+    assert budget.bytes < 1 << 20 and budget.limit.startswith("NDRF_MAX_KEY_BYTES")
+    service.store.put(f"{second.id}/blob", b"x" * (1 << 20))
+    with pytest.raises(StorageQuota, match="NDRF_MAX_KEY_BYTES"):
+        service.submit(spec, ALICE, limits=limits)
+    assert service.store.get(f"{first.id}/blob") == b"x" * (2 << 20)  # nothing written is touched
+    service.submit(spec, BOB, limits=limits)                         # another key's quota is its own
+
+
+def test_a_key_has_at_most_experiments_per_key_unfinished_experiments(tmp_path):
+    from schemas.experiments import ExperimentSpec
+    from services.experiments.service import ExperimentService, TooManyExperiments
+    from services.settings import Limits
+
+    service = JobService(FolderStore(tmp_path), LocalJobQueue(), LocalEventBus())
+    experiments = ExperimentService(service, Limits(experiments_per_key=2))
+    spec = ExperimentSpec.model_validate({"base": small_job("direct"), "grid": {"learning_rate": [0.1, 0.2]}})
+    for _ in range(2):
+        experiments.create(spec, ALICE)
+    with pytest.raises(TooManyExperiments, match="NDRF_MAX_EXPERIMENTS_PER_KEY"):
+        experiments.create(spec, ALICE)
+    experiments.create(spec, BOB)
