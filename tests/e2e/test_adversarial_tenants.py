@@ -166,3 +166,30 @@ def test_a_keys_small_job_waits_for_one_job_of_another_key_not_its_queue(stack):
            f"{len(before)} of alice's jobs started before it (1 worker)")
     cancel_all(alice)
     assert before == heavy[:1], (before, heavy)
+
+
+def test_a_keys_stored_bytes_stop_at_its_quota_and_usage_shows_them(tmp_path):
+    """Two jobs with images every iteration grew the store by 4.2 GB in 346 s: nothing bounded a
+    key's total. A stack of its own with NDRF_MAX_KEY_BYTES = 2 MiB."""
+    redis = Redis().start()
+    env = {"REDIS_URL": redis.url, "NDRF_STORE": str(tmp_path / "store"), **KEYS, "NDRF_MAX_KEY_BYTES": str(2 << 20)}
+    api_proc, alice = start_api(tmp_path, env)
+    worker = Process(["-v", "worker", "--name", "w"], env, tmp_path / "worker.log")
+    try:
+        job = small_job("direct", iterations=300, images_every=1,
+                        render={"spp": 4, "gradient_spp": 4, "resolution": [64, 64]})
+        status, _, first = alice.json("POST", "/v1/jobs", job)
+        assert status == 202, first
+        failed = alice.wait_status(first["id"], ("failed", "succeeded"), 600)
+        assert failed["status"] == "failed" and "NDRF_MAX_KEY_BYTES" in failed["error"], failed
+        stored = sum(p.stat().st_size for p in (tmp_path / "store" / first["id"]).rglob("*") if p.is_file())
+        assert stored <= 2 << 20, stored
+        status, _, usage = alice.json("GET", "/v1/usage")
+        assert status == 200 and usage["stored_bytes"]["limit"] == 2 << 20, usage
+        assert usage["stored_bytes"]["used"] == stored and usage["active_jobs"]["used"] == 0
+        bob = Api(alice.base, "bob-key")
+        assert bob.json("POST", "/v1/jobs", small_job("direct", iterations=2))[0] == 202
+    finally:
+        worker.kill()
+        api_proc.kill()
+        redis.kill()
