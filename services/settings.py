@@ -54,6 +54,12 @@ class Limits(BaseSettings):
                                                                        "process that loads or runs a job.")
     view_seconds: float = Field(300.0, ge=1.0, description="Wall-clock limit of one view of a job's fields "
                                                         "(POST /v1/jobs/{id}/views), prb's comparison image included.")
+    view_samples: int = Field(1 << 20, ge=4096, le=1 << 34,
+                              description="Most samples of one view (POST /v1/jobs/{id}/views): width x height x "
+                                          "spp, and the same for prb_spp. A view child's memory grows with them "
+                                          "(the outside probe measured 7.2 GiB at 512 x 512 x 16); a view over "
+                                          "it is refused with a 422 before any child starts. A view's sides "
+                                          "and spp also stay within NDRF_MAX_RESOLUTION and NDRF_MAX_SPP.")
     preflight_seconds: float = Field(120.0, ge=1.0, description="Wall-clock limit of loading a scene at "
                                                                  "submission.")
     active_jobs_per_key: int = Field(32, ge=1, description="Most queued or running jobs of one API key.")
