@@ -124,15 +124,18 @@ def test_accepted_formats_can_be_restricted():
 
 def test_channels_count_before_decoding_exr_npy_and_png():
     """Issue 38: a 5.7 MB EXR declaring 700 channels (5.5 GiB decoded) passed the pixel cap."""
+    import base64
+
     from schemas.job import JobSpec
     from services.limits import check_target_headers
     from services.settings import Limits
     from tests.support.jobs import small_job
-    import base64
 
     many = exr_header(1400, 1400, [f"c{i}" for i in range(700)])
     assert image_header(many) == ImageInfo("exr", 1400, 1400, 700) and len(many) < 20_000
-    job = JobSpec.model_validate({**small_job(), "targets": {"images": [{"sensor": 0, "data": base64.b64encode(many).decode()}]}})
+    target = {"sensor": 0, "data": base64.b64encode(many).decode()}
+    target = {"sensor": 0, "data": base64.b64encode(many).decode()}
+    job = JobSpec.model_validate({**small_job(), "targets": {"images": [target]}})
     with pytest.raises(InvalidJob) as caught:
         check_target_headers(job, Limits())
     assert caught.value.field == "targets.images[0].data"
