@@ -33,6 +33,8 @@ log = logging.getLogger(__name__)
 
 JOB_ID = re.compile(r"^[0-9a-f]{20}$")
 ANONYMOUS = "anonymous"
+#: A key's stored bytes found under its quota are not summed again for this long (per process).
+ROOM_SECONDS = 10.0
 #: The longest a submission holds its key's lock (count, then create): a holder that died frees it then.
 SUBMIT_LOCK_SECONDS = 60.0
 #: A claim whose job never appeared (its writer died between the two steps) is stale after this.
@@ -72,6 +74,7 @@ class JobService:
         self.queue = queue
         self.events = events
         self.states = JobStates(store, events)
+        self._room: dict[str, float] = {}   # owner -> when its stored bytes were last found under its quota
 
     # ------------------------------------------------------------------ reads
 
@@ -128,7 +131,7 @@ class JobService:
         record fields (an experiment's id and varied values). With ``limits``, a key whose files
         reached ``key_bytes`` is refused (:class:`~services.jobs.quotas.StorageQuota`)."""
         if limits is not None:
-            check_room(self.states, caller.owner, limits)
+            self._check_room(caller.owner, limits)
         job_id = new_job_id()
         if idempotency_key:
             existing = self._claim(caller, idempotency_key, job_id)
@@ -147,6 +150,16 @@ class JobService:
                 return self._create(job_id, spec, caller, idempotency_key, extra), True
         except LockBusy:
             raise TooManyJobs("other submissions of this key are being counted: retry") from None
+
+    def _check_room(self, owner: str, limits: Limits) -> None:
+        """The key's stored bytes against its quota, summed from the store at most every
+        ``ROOM_SECONDS`` per key (each attempt checks again when it starts)."""
+        now = time.monotonic()
+        seen = self._room.get(owner)
+        if seen is not None and now - seen < ROOM_SECONDS:
+            return
+        check_room(self.states, owner, limits)
+        self._room[owner] = now
 
     def active_count(self, owner: str) -> int:
         """Queued or running jobs of ``owner``."""
