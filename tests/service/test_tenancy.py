@@ -116,8 +116,11 @@ def test_a_key_runs_at_most_its_cap_of_jobs_and_a_free_worker_takes_another_keys
     assert queue.lease("w1", 0.1).job_id == "alice-2"
 
 
-def test_a_key_at_its_storage_quota_is_refused_and_a_job_gets_what_the_key_has_left(tmp_path):
+def test_a_key_at_its_storage_quota_is_refused_and_a_job_gets_what_the_key_has_left(tmp_path, monkeypatch):
+    import services.jobs.service as module
     from services.jobs.quotas import StorageQuota, attempt_budget
+
+    monkeypatch.setattr(module, "ROOM_SECONDS", 0.0)          # sum the key's bytes at every submission
     from services.settings import Limits
 
     service = JobService(FolderStore(tmp_path), LocalJobQueue(), LocalEventBus())
