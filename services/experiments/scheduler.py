@@ -8,9 +8,10 @@ A run becomes a job (``JobService.submit``: record, then enqueue) only when
 Rule 1 is exact across any number of workers and API processes: a run is reserved by a
 compare-and-set of the experiment record that counts the active runs in the same step
 (:mod:`services.experiments.state`), so two schedulers cannot both take the last slot. Rule 2 is
-the fairness decision: the queue is FIFO and shared, so runs enter it one at a time and only when
-a worker is about to be free; a job submitted while a 100-run experiment is pending waits for the
-next free worker (and at most one run admitted before it), never for the experiment.
+the fairness decision within a key: runs enter the queue one at a time and only when a worker is
+about to be free, so a job the same key submits while a 100-run experiment is pending waits for the
+next free worker (and at most one run admitted before it), never for the experiment. Between keys
+the queue itself is fair (a share per key, :mod:`services.queue.base`).
 Experiments with free slots are served oldest admission first, so two experiments interleave.
 
 Admission is three steps, each safe to repeat: reserve the run (``admitting``, CAS), submit its
