@@ -17,8 +17,9 @@ from importlib.metadata import version
 from fastapi import FastAPI
 
 from api import accesslog, problems
+from api.admission import Admission
 from api.guard import Guard
-from api.routes import artifacts, events, experiments, field_views, health, jobs, scenes
+from api.routes import artifacts, events, experiments, field_views, health, jobs, scenes, usage
 from api.routes.health import Snapshot
 from api.streams import StreamHub
 from services.jobs.device import DeviceReport
@@ -39,6 +40,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
         runtime = build_runtime(settings)
         runtime.blocking = anyio.CapacityLimiter(settings.preflight_workers)
+        runtime.admission = Admission(runtime.blocking, settings.admission_per_key)
         app.state.runtime = runtime
         app.state.snapshot = Snapshot(runtime)
         app.state.device = DeviceReport()
@@ -67,7 +69,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     accesslog.install()
     problems.install(app)
-    for module in (jobs, artifacts, field_views, events, experiments, scenes, health):
+    for module in (jobs, artifacts, field_views, events, experiments, scenes, usage, health):
         app.include_router(module.router)
     from api.dashboard import mount
 

@@ -76,9 +76,10 @@ def check_limits(spec: JobSpec, limits: Limits) -> None:
 
 
 def check_target_headers(spec: JobSpec, limits: Limits) -> None:
-    """Refuse target images whose header declares more pixels than ``NDRF_MAX_IMAGE_PIXELS``,
-    before any decoder allocates for them."""
-    from services.uploads.images import ImageHeaderError, image_header
+    """Refuse target images whose header declares more pixels than ``NDRF_MAX_IMAGE_PIXELS``, or
+    more decoded values (pixels x channels) than ``NDRF_MAX_IMAGE_VALUES``, before any decoder
+    allocates for them (:func:`services.uploads.images.check_image`)."""
+    from services.uploads.images import check_image
 
     if not isinstance(spec.targets, ImageTargets):
         return
@@ -88,13 +89,8 @@ def check_target_headers(spec: JobSpec, limits: Limits) -> None:
             head = base64.b64decode(image.data[:65536 - 65536 % 4], validate=True)
         except (binascii.Error, ValueError):
             raise InvalidJob(where, "is not valid base64") from None
-        try:
-            info = image_header(head)
-        except ImageHeaderError as exc:
-            raise InvalidJob(where, str(exc)) from None
-        if info.width * info.height > limits.image_pixels:
-            raise InvalidJob(where, f"{info.width}x{info.height} = {info.width * info.height} pixels exceed the "
-                                    f"limit of {limits.image_pixels} (NDRF_MAX_IMAGE_PIXELS)")
+        check_image(where, head, limits.image_pixels, max_values=limits.image_values,
+                    values_name="NDRF_MAX_IMAGE_VALUES")
 
 
 def check_scene_report(spec: JobSpec, report: dict, limits: Limits) -> None:

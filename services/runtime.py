@@ -64,6 +64,7 @@ class Runtime:
     slots: StreamSlots | None = None
     redis: redis.Redis | None = None  # the client of REDIS_URL (None: the embedded default)
     blocking: Any = None  # the API's limiter of blocking work (an anyio CapacityLimiter)
+    admission: Any = None  # the same work in a line per key first (api.admission.Admission)
     workers: list = field(default_factory=list)
     threads: list = field(default_factory=list)
     runner_restarts: int = 0
@@ -200,13 +201,13 @@ def build_runtime(settings: Settings) -> Runtime:
 
         client = connect(settings.redis_url)
         bus = RedisEventBus(client, settings.redis_url, connections=settings.redis_connections)
-        queue: JobQueue = RedisJobQueue(client, settings.lease_seconds)
+        queue: JobQueue = RedisJobQueue(client, settings.lease_seconds, settings.limits.running_jobs_per_key)
         runtime = Runtime(settings, store, JobService(store, queue, bus), queue, bus, slots=RedisStreamSlots(bus),
                           redis=client)
     else:
         from services.queue.local import LocalEventBus, LocalJobQueue, LocalStreamSlots
 
-        queue, events = LocalJobQueue(settings.lease_seconds), LocalEventBus()
+        queue, events = LocalJobQueue(settings.lease_seconds, settings.limits.running_jobs_per_key), LocalEventBus()
         runtime = Runtime(settings, store, JobService(store, queue, events), queue, events, slots=LocalStreamSlots())
     log.info("runtime: store %r, %s", store, "redis" if settings.redis_url else "embedded")
     return runtime

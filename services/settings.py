@@ -40,6 +40,9 @@ class Limits(BaseSettings):
     mesh_bytes: int = Field(32 << 20, ge=1024, description="Largest single uploaded file (mesh, texture).")
     image_pixels: int = Field(4 << 20, ge=1, description="Largest target image (width x height), read from "
                                                           "its header before it is decoded.")
+    image_values: int = Field(16 << 20, ge=1, description="Most decoded values of a target image (width x height "
+                                                          "x channels), read from its header before it is "
+                                                          "decoded: an EXR may declare hundreds of channels.")
     training_points: int = Field(65536, ge=64, description="Largest residual batch N x M per step.")
     training_steps: int = Field(200_000, ge=1, description="Most training steps of one job (warm-up + "
                                                            "iterations x steps per iteration).")
@@ -51,12 +54,37 @@ class Limits(BaseSettings):
                                                                        "process that loads or runs a job.")
     view_seconds: float = Field(300.0, ge=1.0, description="Wall-clock limit of one view of a job's fields "
                                                         "(POST /v1/jobs/{id}/views), prb's comparison image included.")
+    view_samples: int = Field(1 << 20, ge=4096, le=1 << 34,
+                              description="Most samples of one view (POST /v1/jobs/{id}/views): width x height x "
+                                          "spp, and the same for prb_spp. A view child's memory grows with them "
+                                          "(the outside probe measured 7.2 GiB at 512 x 512 x 16); a view over "
+                                          "it is refused with a 422 before any child starts. A view's sides "
+                                          "and spp also stay within NDRF_MAX_RESOLUTION and NDRF_MAX_SPP.")
     preflight_seconds: float = Field(120.0, ge=1.0, description="Wall-clock limit of loading a scene at "
                                                                  "submission.")
     active_jobs_per_key: int = Field(32, ge=1, description="Most queued or running jobs of one API key.")
+    running_jobs_per_key: int = Field(4, ge=0, le=10_000,
+                                      description="Most running jobs of one API key at once, across every "
+                                                  "worker: a free worker takes another key's job instead, or waits "
+                                                  "(0: no cap). Within it, keys take turns (least recently served "
+                                                  "first).")
+    key_bytes: int = Field(20 << 30, ge=1 << 20, description="Most bytes of stored files of one API key (all its "
+                                                             "jobs and views): a submission of a key at it is a "
+                                                             "507, and a running job gets at most what is left "
+                                                             "(NDRF_MAX_JOB_BYTES or less) and fails naming this "
+                                                             "limit when it would pass it; nothing written is "
+                                                             "lost.")
     streams_per_key: int = Field(64, ge=1, description="Most open event streams of one API key.")
     experiment_runs: int = Field(200, ge=1, description="Most runs of one experiment (grid x samples x seeds, "
                                                         "appends included).")
+    experiments_per_key: int = Field(20, ge=1, le=10_000, description="Most unfinished experiments of one API key "
+                                                                      "(a 429 beyond): each is refreshed by the "
+                                                                      "scheduler while it runs.")
+    experiment_checks: int = Field(4, ge=1, le=1000,
+                                   description="Most sandboxed scene checks one experiment (or append) runs when "
+                                               "it is created: one per distinct scene, parameters, targets and "
+                                               "render settings, the first ones; the runs of the others are "
+                                               "checked by the worker when they run, and fail there naming why.")
     # JSON bodies are checked by a scan of the raw bytes before they are parsed (api.bodies): the
     # work and memory of parsing and validating a body are bounded by these, not by its size.
     json_depth: int = Field(32, ge=4, le=1000, description="Deepest nesting of arrays and objects in a JSON body "
@@ -142,7 +170,15 @@ class Settings(BaseSettings):
     max_attempts: int = Field(3, ge=1, le=100, description="Attempts before a job that keeps crashing its "
                                                           "worker is failed.")
     embedded_workers: int = Field(1, ge=1, le=16, description="Worker threads of the embedded mode.")
-    preflight_workers: int = Field(2, ge=1, le=64, description="Scene loads running at once in the API.")
+    preflight_workers: int = Field(2, ge=1, le=64, description="Scene loads, views and other blocking admission "
+                                                               "work running at once in one API process, all "
+                                                               "keys together.")
+    admission_per_key: int = Field(1, ge=1, le=64, description="Of those, the most one key runs at once (its "
+                                                               "further work waits in a line of its own, not in "
+                                                               "the shared one): keep it below "
+                                                               "preflight_workers, so that a key with nothing in "
+                                                               "flight never waits behind another key's scene "
+                                                               "checks or views.")
     redis_connections: int = Field(32, ge=2, le=1024, description="Redis connections of one API process for short "
                                                                   "commands (stream slots, event reads); a stream "
                                                                   "that finds none free within a second is refused "

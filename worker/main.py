@@ -166,7 +166,7 @@ class Worker:
             if record.attempt == attempt and record.status is JobStatus.RUNNING:
                 states.transition(lease.job_id, JobStatus.QUEUED, fence=attempt,
                                   note="lease lost; handed back, resumes from its checkpoint")
-                self.queue.enqueue(lease.job_id)       # a no-op if the job is queued or leased
+                self.queue.enqueue(lease.job_id, owner=record.owner)   # a no-op if the job is queued or leased
         except (Fenced, Conflict, UnknownJob) as exc:
             log.info("job %s: %s", lease.job_id, exc)
         self._ack(lease, attempt)

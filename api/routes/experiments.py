@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 from typing import Annotated
 
-import anyio
 from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from fastapi.responses import PlainTextResponse, StreamingResponse
 
@@ -32,6 +31,7 @@ from schemas.experiments import (
 )
 from schemas.job import JobSpec
 from services.experiments.expand import InvalidExperiment
+from services.experiments.service import TooManyExperiments
 from services.jobs.preflight import preflight
 from services.jobs.service import Caller
 from services.jobs.state import UnknownJob
@@ -74,7 +74,8 @@ def _accepted(response: Response, record: ExperimentRecord, added: list[int]) ->
 
 
 @router.post("", status_code=202, response_model=ExperimentAccepted,
-             responses={413: {"model": ProblemDetails}, 422: {"model": ProblemDetails}}, summary="Create an experiment")
+             responses={413: {"model": ProblemDetails}, 422: {"model": ProblemDetails}, 429: {"model": ProblemDetails}},
+             summary="Create an experiment")
 async def create_experiment(spec: ExperimentSpec, response: Response, runtime: RuntimeDep, caller: CallerDep):
     """Expand ``grid`` x ``samples`` random draws x ``seeds`` into runs, check every run as a job
     submission would be checked (schema, caps, the scene in a sandbox, once per distinct scene),
@@ -87,9 +88,12 @@ async def create_experiment(spec: ExperimentSpec, response: Response, runtime: R
         return runtime.experiments.create(spec, caller, preflight=preflight)
 
     try:
-        record = await anyio.to_thread.run_sync(create, limiter=runtime.blocking)
+        record = await runtime.admission.run(caller.owner, create)
     except InvalidExperiment as exc:
         raise _invalid(exc) from None
+    except TooManyExperiments as exc:
+        raise ProblemError(429, "Too many experiments", str(exc), slug="too-many-experiments",
+                           headers={"Retry-After": "60"}) from None
     return _accepted(response, record, [run.index for run in record.runs])
 
 
@@ -191,7 +195,7 @@ async def append_runs(exp_id: str, more: ExperimentAppend, response: Response, r
         return runtime.experiments.append(exp_id, more, caller, preflight=preflight)
 
     try:
-        record, added = await anyio.to_thread.run_sync(append, limiter=runtime.blocking)
+        record, added = await runtime.admission.run(caller.owner, append)
     except InvalidExperiment as exc:
         raise _invalid(exc) from None
     return _accepted(response, record, added)

@@ -7,7 +7,6 @@ import base64
 import re
 from typing import Annotated
 
-import anyio
 from fastapi import APIRouter
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, Response
@@ -40,10 +39,11 @@ async def create(job_id: str, request: ViewRequest, runtime: RuntimeDep, caller:
     ``inline`` answers the PNGs in the response and stores nothing. A job without a checkpoint yet, or whose method trains no
     field, or whose files would exceed the job's disk budget, is a ``409``; a camera that cannot be
     built a ``422``."""
+    owner = runtime.service.record(job_id, caller).owner   # the warm child belongs to the job's key
     files = runtime.service.files(job_id, caller)
     try:
-        view_id, written, meta = await anyio.to_thread.run_sync(create_view, files, request, runtime.settings.limits,
-                                                                runtime.view_sessions, limiter=runtime.blocking)
+        view_id, written, meta = await runtime.admission.run(caller.owner, create_view, files, request,
+                                                             runtime.settings.limits, runtime.view_sessions, owner)
     except NoCheckpoint as exc:
         raise ProblemError(409, "Conflict", str(exc), slug="no-checkpoint") from None
     except OverBudget as exc:

@@ -16,6 +16,7 @@ from schemas.errors import InvalidJob
 from schemas.job import JobSpec
 from schemas.records import JobAccepted, JobPage, JobPublic, JobStatus
 from services.jobs.preflight import preflight
+from services.jobs.quotas import StorageQuota
 from services.jobs.service import TooManyJobs
 from services.jobs.warm_start import source_checkpoint
 from services.runtime import Runtime
@@ -26,18 +27,19 @@ router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=GuardedRoute,
                    responses={401: {"model": ProblemDetails, "description": "Missing or wrong API key."}})
 
 
-async def validate_job(spec: JobSpec, runtime: Runtime) -> None:
-    """Caps, sandbox, and the scene loaded in a sandboxed child (a 422 naming the field)."""
-    limiter = runtime.blocking
+async def validate_job(spec: JobSpec, runtime: Runtime, owner: str) -> None:
+    """Caps, sandbox, and the scene loaded in a sandboxed child (a 422 naming the field), in the
+    key's line of admission work (:mod:`api.admission`)."""
     try:
-        await anyio.to_thread.run_sync(preflight, spec, runtime.settings.limits, limiter=limiter)
+        await runtime.admission.run(owner, preflight, spec, runtime.settings.limits)
     except InvalidJob as exc:
         raise ProblemError(422, "Invalid job", str(exc), slug="invalid-job", errors=[(exc.field, exc.message)]) from None
 
 
 @router.post("", status_code=202, response_model=JobAccepted,
              responses={409: conflict("idempotency-conflict"), 413: {"model": ProblemDetails},
-                        422: {"model": ProblemDetails}, 429: {"model": ProblemDetails}},
+                        422: {"model": ProblemDetails}, 429: {"model": ProblemDetails},
+                        507: {"model": ProblemDetails}},
              summary="Submit a job")
 async def submit_job(spec: JobSpec, response: Response, runtime: RuntimeDep, caller: CallerDep,
                      idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key", max_length=200,
@@ -48,27 +50,29 @@ async def submit_job(spec: JobSpec, response: Response, runtime: RuntimeDep, cal
     the job id and a ``Location`` header; a bad job is a ``422`` naming the field."""
     service = runtime.service
     if idempotency_key:
-        existing = await anyio.to_thread.run_sync(service.find_idempotent, caller, idempotency_key,
-                                                  limiter=runtime.blocking)
+        existing = await runtime.admission.run(caller.owner, service.find_idempotent, caller, idempotency_key)
         if existing is not None:
             return _accepted(response, existing.id, existing.status, await _fingerprint(spec),
                              existing.fingerprint)
-    await validate_job(spec, runtime)
+    await validate_job(spec, runtime, caller.owner)
     if spec.warm_start is not None:  # the source: a job of this key with the same scene and keys
         try:
-            await anyio.to_thread.run_sync(lambda: source_checkpoint(runtime.service.states, spec, caller.owner,
-                                                                     read=False), limiter=runtime.blocking)
+            await runtime.admission.run(caller.owner, lambda: source_checkpoint(runtime.service.states, spec,
+                                                                                caller.owner, read=False))
         except InvalidJob as exc:
             raise ProblemError(422, "Invalid job", str(exc), slug="invalid-job",
                                errors=[(exc.field, exc.message)]) from None
 
     def submit():
-        return service.submit(spec, caller, idempotency_key, max_active=runtime.settings.limits.active_jobs_per_key)
+        limits = runtime.settings.limits
+        return service.submit(spec, caller, idempotency_key, max_active=limits.active_jobs_per_key, limits=limits)
 
     try:
-        record, _ = await anyio.to_thread.run_sync(submit, limiter=runtime.blocking)
+        record, _ = await runtime.admission.run(caller.owner, submit)
     except TooManyJobs as exc:
         raise ProblemError(429, "Too many jobs", str(exc), slug="too-many-jobs", headers={"Retry-After": "30"}) from None
+    except StorageQuota as exc:
+        raise ProblemError(507, "Storage quota reached", str(exc), slug="storage-quota") from None
     return _accepted(response, record.id, record.status, await _fingerprint(spec), record.fingerprint)
 
 

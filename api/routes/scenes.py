@@ -3,12 +3,11 @@ sandboxed child process, like a job's)."""
 
 from __future__ import annotations
 
-import anyio
 from fastapi import APIRouter, Depends
 from pydantic import BaseModel, Field
 
 from api.bodies import GuardedRoute
-from api.deps import RuntimeDep, require_caller
+from api.deps import CallerDep, RuntimeDep, require_caller
 from api.problems import ProblemDetails, ProblemError
 from schemas.errors import InvalidJob
 from schemas.job import BuiltinScene, SceneSpec, XmlScene
@@ -45,10 +44,9 @@ def list_scenes():
     return [SceneSummary(name=name, description=text) for name, text in BUILTIN_SCENES.items()]
 
 
-async def _describe(scene: SceneSpec, runtime: Runtime) -> SceneParameters:
+async def _describe(scene: SceneSpec, runtime: Runtime, owner: str) -> SceneParameters:
     try:
-        found = await anyio.to_thread.run_sync(describe_scene, scene, runtime.settings.limits,
-                                               limiter=runtime.blocking)
+        found = await runtime.admission.run(owner, describe_scene, scene, runtime.settings.limits)
     except InvalidJob as exc:
         raise ProblemError(422, "Invalid scene", str(exc), slug="invalid-scene", errors=[(exc.field, exc.message)]) from None
     return SceneParameters.model_validate(found)
@@ -56,15 +54,15 @@ async def _describe(scene: SceneSpec, runtime: Runtime) -> SceneParameters:
 
 @router.get("/{name}/parameters", response_model=SceneParameters, responses={404: {"model": ProblemDetails}},
             summary="Parameters of a built-in scene")
-async def builtin_parameters(name: str, runtime: RuntimeDep):
+async def builtin_parameters(name: str, runtime: RuntimeDep, caller: CallerDep):
     if name not in BUILTIN_SCENES:
         raise ProblemError(404, "Not found", f"no built-in scene {name!r}; known: {', '.join(BUILTIN_SCENES)}",
                            slug="unknown-scene")
-    return await _describe(BuiltinScene(builtin=name), runtime)
+    return await _describe(BuiltinScene(builtin=name), runtime, caller.owner)
 
 
 @router.post("/parameters", response_model=SceneParameters, responses={422: {"model": ProblemDetails}},
              summary="Parameters of an uploaded scene")
-async def uploaded_parameters(scene: XmlScene, runtime: RuntimeDep):
+async def uploaded_parameters(scene: XmlScene, runtime: RuntimeDep, caller: CallerDep):
     """The same upload checks as job submission apply (only the uploaded files can be read)."""
-    return await _describe(scene, runtime)
+    return await _describe(scene, runtime, caller.owner)

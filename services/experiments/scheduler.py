@@ -8,9 +8,10 @@ A run becomes a job (``JobService.submit``: record, then enqueue) only when
 Rule 1 is exact across any number of workers and API processes: a run is reserved by a
 compare-and-set of the experiment record that counts the active runs in the same step
 (:mod:`services.experiments.state`), so two schedulers cannot both take the last slot. Rule 2 is
-the fairness decision: the queue is FIFO and shared, so runs enter it one at a time and only when
-a worker is about to be free; a job submitted while a 100-run experiment is pending waits for the
-next free worker (and at most one run admitted before it), never for the experiment.
+the fairness decision within a key: runs enter the queue one at a time and only when a worker is
+about to be free, so a job the same key submits while a 100-run experiment is pending waits for the
+next free worker (and at most one run admitted before it), never for the experiment. Between keys
+the queue itself is fair (a share per key, :mod:`services.queue.base`).
 Experiments with free slots are served oldest admission first, so two experiments interleave.
 
 Admission is three steps, each safe to repeat: reserve the run (``admitting``, CAS), submit its
@@ -41,6 +42,7 @@ from services.experiments import warm_start
 from services.experiments.expand import job_document
 from services.experiments.service import ExperimentService
 from services.experiments.state import UnknownExperiment
+from services.jobs.quotas import StorageQuota
 from services.jobs.service import Caller, TooManyJobs
 from services.jobs.state import Conflict, UnknownJob
 from services.queue.base import JobQueue
@@ -232,8 +234,8 @@ class Scheduler:
         try:
             job, _ = self.jobs.submit(spec, Caller(record.owner), f"experiment:{exp_id}:{index}:{admission}",
                                       max_active=self.experiments.limits.active_jobs_per_key,
-                                      experiment=exp_id, varied=run.values)
-        except TooManyJobs as exc:       # the owner's cap on active jobs: the run waits for a slot
+                                      limits=self.experiments.limits, experiment=exp_id, varied=run.values)
+        except (TooManyJobs, StorageQuota) as exc:   # the owner's caps: the run waits for room
             log.info("experiment %s run %d waits: %s", exp_id, index, exc)
             self._release(exp_id, index, admission)
             return None

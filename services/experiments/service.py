@@ -37,9 +37,14 @@ from services.experiments.state import (
 from services.experiments.validate import Preflight, check_run_count, validate_runs
 from services.jobs.service import SYSTEM, Caller, JobService, scene_label
 from services.jobs.state import Conflict, UnknownJob, now_iso
+from services.queue.base import LockBusy
 from services.settings import Limits
 
 log = logging.getLogger(__name__)
+
+
+class TooManyExperiments(Exception):
+    """The key has ``experiments_per_key`` unfinished experiments (a 429)."""
 
 
 def may_see(caller: Caller, record: ExperimentRecord) -> bool:
@@ -137,10 +142,17 @@ class ExperimentService:
 
     # ----------------------------------------------------------------- create
 
+    def open_count(self, owner: str) -> int:
+        """Unfinished experiments of ``owner``."""
+        return sum(1 for r in self.records() if r.owner == owner and not r.status.finished)
+
     def create(self, spec: ExperimentSpec, caller: Caller = SYSTEM, preflight: Preflight | None = None,
                max_concurrent: int | None = None) -> ExperimentRecord:
         """Validate every run (:class:`InvalidExperiment` naming the run and field) and store the
-        experiment; its runs are pending until the scheduler admits them."""
+        experiment; its runs are pending until the scheduler admits them. A key with
+        ``experiments_per_key`` unfinished experiments is refused (:class:`TooManyExperiments`),
+        counted and stored in one step under the key's lock."""
+        self._check_open(caller.owner)
         base, sweep = normalize(spec)
         assert spec.base is not None
         if max_concurrent is not None:
@@ -155,9 +167,20 @@ class ExperimentService:
                                   base_scene=scene_label(spec.base), base_iterations=spec.base.iterations,
                                   base_job=spec.base_job,
                                   runs=[RunState(index=i, key=p.key, values=p.values) for i, p in enumerate(planned)])
-        self.states.create(record, base)
+        try:
+            with self.jobs.queue.hold(f"experiments:{caller.owner}"):
+                self._check_open(caller.owner)
+                self.states.create(record, base)
+        except LockBusy:
+            raise TooManyExperiments("other experiments of this key are being created: retry") from None
         log.info("experiment %s created: %d runs, %d at once", record.id, len(record.runs), sweep["max_concurrent"])
         return record
+
+    def _check_open(self, owner: str) -> None:
+        count, cap = self.open_count(owner), self.limits.experiments_per_key
+        if count >= cap:
+            raise TooManyExperiments(f"{count} experiments of this key are unfinished (limit {cap}, "
+                                     f"NDRF_MAX_EXPERIMENTS_PER_KEY): cancel one or wait for it")
 
     # ------------------------------------------------------------ cancel/retry
 

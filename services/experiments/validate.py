@@ -5,7 +5,10 @@ checked as a job submission would be: the schema (pydantic), the caps (:func:`se
 check_limits`), the target image headers, then the scene loaded in a sandboxed child
 (``preflight``). The scene check is the expensive one; it only depends on the scene, the
 parameters, the targets and the render settings, so it runs once per distinct combination of
-those (a sweep over learning rates and seeds loads the scene once). The first failure is an
+those (a sweep over learning rates and seeds loads the scene once), and for at most
+``NDRF_MAX_EXPERIMENT_CHECKS`` of them: the runs of the others are checked by the worker when they
+run (a run whose scene does not load fails there, naming why), so one experiment cannot hold the
+API's scene checks for minutes. The first failure is an
 :class:`InvalidExperiment` naming the run and the field: ``runs[3].learning_rate``.
 """
 
@@ -63,6 +66,7 @@ def validate_runs(base: dict, runs: Sequence[PlannedRun], limits: Limits, prefli
                                     f"{_describe_run(index, run.values)}: {exc.message}") from None
         specs.append(spec)
     checked: set[str] = set()
+    loaded = 0
     for offset, (run, spec) in enumerate(zip(runs, specs)):
         scene_key = json.dumps(spec.model_dump(mode="json", include=set(SCENE_FIELDS)), sort_keys=True)
         if scene_key in checked:
@@ -71,10 +75,12 @@ def validate_runs(base: dict, runs: Sequence[PlannedRun], limits: Limits, prefli
         index = first_index + offset
         try:
             check_target_headers(spec, limits)
-            if preflight is not None:
+            if preflight is not None and loaded < limits.experiment_checks:
+                loaded += 1
                 preflight(spec, limits)
         except InvalidJob as exc:
             raise InvalidExperiment(f"runs[{index}].{exc.field}",
                                     f"{_describe_run(index, run.values)}: {exc.message}") from None
-    log.info("validated %d run(s) with %d scene check(s)", len(specs), len(checked))
+    log.info("validated %d run(s): %d distinct scene setting(s), %d loaded in a sandbox now (the rest when "
+             "they run, NDRF_MAX_EXPERIMENT_CHECKS)", len(specs), len(checked), loaded)
     return specs

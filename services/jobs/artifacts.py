@@ -43,10 +43,10 @@ class JobWriter:
     """
 
     def __init__(self, states: JobStates, job_id: str, *, attempt: str | None = None, byte_budget: int | None = None,
-                 stop: Callable[[], str | None] = lambda: None):
+                 stop: Callable[[], str | None] = lambda: None, budget_limit: str = "NDRF_MAX_JOB_BYTES"):
         self.states, self.job_id, self.attempt = states, job_id, attempt
         self.files: JobFiles = states.files(job_id)
-        self.byte_budget = byte_budget
+        self.byte_budget, self.budget_limit = byte_budget, budget_limit
         self.written = self._existing_bytes() if byte_budget is not None else 0
         self.stop = stop
         self.labels: list[str] = []
@@ -67,7 +67,7 @@ class JobWriter:
     def _put(self, key: str, data: bytes, *, durable: bool = True) -> None:
         if self.byte_budget is not None and self.written + len(data) > self.byte_budget:
             raise BudgetExceeded(f"the job's files would exceed its disk budget of {self.byte_budget >> 20} MiB "
-                                 f"(NDRF_MAX_JOB_BYTES); write images less often (images_every)")
+                                 f"({self.budget_limit}); write images less often (images_every)")
         self.files.store.put(key, data, durable=durable)
         self.written += len(data)
 

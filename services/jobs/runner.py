@@ -42,8 +42,10 @@ from services.jobs.artifacts import BudgetExceeded, JobWriter
 from services.jobs.frames import FrameError, array_from, read_frame, start_frame, write_frame
 from services.jobs.isolation import Child, ChildFailed, ChildLimits, kernel_cache, sandboxed
 from services.jobs.preflight import upload_limits
+from services.jobs.quotas import attempt_budget
 from services.jobs.state import Fenced, JobStates
 from services.jobs.warm_start import source_checkpoint
+from services.limits import check_limits, check_target_headers
 from services.settings import Limits
 from services.store.base import StoreFull
 from services.store.job import JobFiles
@@ -100,7 +102,8 @@ class AttemptRunner:
                  stop: Callable[[], Outcome | None]) -> AttemptResult:
         """Stage the attempt's files, start its child, supervise it. Whatever ends the attempt, the
         child is killed and its frame reader joined (``finally``)."""
-        writer = JobWriter(self.states, job_id, attempt=attempt, byte_budget=self.limits.job_bytes)
+        budget = attempt_budget(self.states, job_id, self.limits)
+        writer = JobWriter(self.states, job_id, attempt=attempt, byte_budget=budget.bytes, budget_limit=budget.limit)
         writer.guard()  # before staging anything: a stale attempt does nothing at all
         try:
             start = self._stage(job_id, folder)
@@ -128,6 +131,10 @@ class AttemptRunner:
         ``folder``: the child's start frame. A job the checks refuse raises :class:`InvalidJob`."""
         files = self.states.files(job_id)
         spec = JobSpec.model_validate(files.read(JobFiles.SPEC))
+        # the caps and the image headers again: an experiment's run whose scene setting was not
+        # loaded at creation (NDRF_MAX_EXPERIMENT_CHECKS) is checked here, and fails naming why
+        check_limits(spec, self.limits)
+        check_target_headers(spec, self.limits)
         folder.mkdir(parents=True, exist_ok=True)
         scene_file = stage_scene(spec.scene, folder / "scene", upload_limits(self.limits))
         resume = files.resume_checkpoint()

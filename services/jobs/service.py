@@ -22,8 +22,10 @@ from datetime import UTC, datetime, timedelta
 
 from schemas.job import JobSpec
 from schemas.records import ACTIVE, FINISHED, JobRecord, JobStatus
+from services.jobs.quotas import check_room
 from services.jobs.state import Conflict, JobStates, UnknownJob, now_iso
-from services.queue.base import EventBus, JobQueue
+from services.queue.base import EventBus, JobQueue, LockBusy
+from services.settings import Limits
 from services.store.base import ArtifactStore
 from services.store.job import JobFiles
 
@@ -31,6 +33,10 @@ log = logging.getLogger(__name__)
 
 JOB_ID = re.compile(r"^[0-9a-f]{20}$")
 ANONYMOUS = "anonymous"
+#: A key's stored bytes found under its quota are not summed again for this long (per process).
+ROOM_SECONDS = 10.0
+#: The longest a submission holds its key's lock (count, then create): a holder that died frees it then.
+SUBMIT_LOCK_SECONDS = 60.0
 #: A claim whose job never appeared (its writer died between the two steps) is stale after this.
 CLAIM_STALE_SECONDS = 30.0
 
@@ -68,6 +74,7 @@ class JobService:
         self.queue = queue
         self.events = events
         self.states = JobStates(store, events)
+        self._room: dict[str, float] = {}   # owner -> when its stored bytes were last found under its quota
 
     # ------------------------------------------------------------------ reads
 
@@ -118,20 +125,48 @@ class JobService:
             return None
 
     def submit(self, spec: JobSpec, caller: Caller = SYSTEM, idempotency_key: str | None = None,
-               max_active: int | None = None, **extra) -> tuple[JobRecord, bool]:
+               max_active: int | None = None, limits: Limits | None = None, **extra) -> tuple[JobRecord, bool]:
         """Create and enqueue a job; returns ``(record, created)``. With an ``idempotency_key`` the
         caller used before, returns that job instead (``created`` False). ``extra`` are further
-        record fields (an experiment's id and varied values)."""
+        record fields (an experiment's id and varied values). With ``limits``, a key whose files
+        reached ``key_bytes`` is refused (:class:`~services.jobs.quotas.StorageQuota`)."""
+        if limits is not None:
+            self._check_room(caller.owner, limits)
         job_id = new_job_id()
         if idempotency_key:
             existing = self._claim(caller, idempotency_key, job_id)
             if existing is not None:
                 return existing, False
-        if max_active is not None:
-            active = sum(1 for r in self.records(caller) if r.owner == caller.owner and r.status in ACTIVE)
-            if active >= max_active:
-                raise TooManyJobs(f"{active} jobs of this key are queued or running (limit {max_active}, "
-                                  f"NDRF_MAX_ACTIVE_JOBS_PER_KEY)")
+        if max_active is None:
+            return self._create(job_id, spec, caller, idempotency_key, extra), True
+        # the count and the creation are one step under the key's lock (every API process and
+        # scheduler shares it): concurrent submissions cannot both take the last place
+        try:
+            with self.queue.hold(f"active:{caller.owner}", seconds=SUBMIT_LOCK_SECONDS):
+                active = self.active_count(caller.owner)
+                if active >= max_active:
+                    raise TooManyJobs(f"{active} jobs of this key are queued or running (limit {max_active}, "
+                                      f"NDRF_MAX_ACTIVE_JOBS_PER_KEY)")
+                return self._create(job_id, spec, caller, idempotency_key, extra), True
+        except LockBusy:
+            raise TooManyJobs("other submissions of this key are being counted: retry") from None
+
+    def _check_room(self, owner: str, limits: Limits) -> None:
+        """The key's stored bytes against its quota, summed from the store at most every
+        ``ROOM_SECONDS`` per key (each attempt checks again when it starts)."""
+        now = time.monotonic()
+        seen = self._room.get(owner)
+        if seen is not None and now - seen < ROOM_SECONDS:
+            return
+        check_room(self.states, owner, limits)
+        self._room[owner] = now
+
+    def active_count(self, owner: str) -> int:
+        """Queued or running jobs of ``owner``."""
+        return sum(1 for r in self.records() if r.owner == owner and r.status in ACTIVE)
+
+    def _create(self, job_id: str, spec: JobSpec, caller: Caller, idempotency_key: str | None,
+                extra: dict) -> JobRecord:
         files = self.states.files(job_id)
         files.write(JobFiles.SPEC, spec.model_dump(mode="json"))
         now = now_iso()
@@ -140,9 +175,9 @@ class JobService:
                            iterations=spec.iterations, idempotency_key=idempotency_key,
                            fingerprint=spec.fingerprint(), **extra)
         self.states.create(record)
-        self.queue.enqueue(job_id)
+        self.queue.enqueue(job_id, owner=caller.owner)
         log.info("job %s queued (%s on %s)", job_id, spec.method, record.scene)
-        return record, True
+        return record
 
     def _claim(self, caller: Caller, key: str, job_id: str) -> JobRecord | None:
         """Claim an idempotency key for ``job_id`` in one atomic create (content included);
@@ -244,7 +279,7 @@ class JobService:
         for job_id in sorted(self.queue.orphans(candidates, grace_seconds)):
             record = candidates[job_id]
             attempt = record.attempt if record.status is JobStatus.RUNNING else None
-            if self.queue.enqueue(job_id, unless_alive=attempt):
+            if self.queue.enqueue(job_id, unless_alive=attempt, owner=record.owner):
                 added.append(job_id)
                 log.warning("reconciler: re-enqueued unfinished job %s (%s, attempt %s)", job_id,
                             record.status.value, record.attempt)

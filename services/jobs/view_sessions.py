@@ -24,6 +24,7 @@ import shutil
 import tempfile
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 
 from schemas.job import JobSpec
@@ -40,8 +41,10 @@ log = logging.getLogger(__name__)
 class ViewSession:
     """One warm child for one job's checkpoint; :meth:`view` one request at a time."""
 
-    def __init__(self, job_id: str, digest: str, spec: JobSpec, checkpoint: bytes, limits: Limits):
-        self.job_id, self.digest = job_id, digest
+    def __init__(self, job_id: str, digest: str, spec: JobSpec, checkpoint: bytes, limits: Limits,
+                 owner: str = ""):
+        self.job_id, self.digest, self.owner = job_id, digest, owner
+        self.kept = True   # False: not among the warm children (no room that its key may take): closed after use
         self.wall = limits.view_seconds
         self.started = self.used = time.monotonic()
         self.lock = threading.Lock()
@@ -86,7 +89,7 @@ class ViewSession:
             try:
                 write_frame(self.child.stdin, "view", {"request": request.model_dump(mode="json")})
                 frame = self.frames.get(timeout=self.wall)
-            except (BrokenPipeError, OSError):
+            except (BrokenPipeError, OSError, ValueError):   # ValueError: its stdin was closed meanwhile
                 frame = None
             except queue.Empty:
                 self.close()
@@ -119,8 +122,22 @@ class ViewSessions:
     def enabled(self) -> bool:
         return self.keep_seconds > 0 and self.most > 0
 
-    def session(self, job_id: str, spec: JobSpec, checkpoint: bytes, limits: Limits) -> tuple[ViewSession, bool]:
-        """The warm session of this job's checkpoint, started if needed; ``(session, started)``."""
+    def _evictable(self, owner: str) -> tuple[str, str] | None:
+        """The session to close to make room for one of ``owner``: its own least recently used
+        one, else the least recently used one of a key holding more than one; None: every
+        session belongs to another key holding just that one (none of them is evicted)."""
+        own = [k for k, s in self.sessions.items() if s.owner == owner]
+        if not own:
+            held = Counter(s.owner for s in self.sessions.values())
+            own = [k for k, s in self.sessions.items() if held[s.owner] > 1]
+        return min(own, key=lambda k: self.sessions[k].used) if own else None
+
+    def session(self, job_id: str, spec: JobSpec, checkpoint: bytes, limits: Limits,
+                owner: str = "") -> tuple[ViewSession, bool]:
+        """The warm session of this job's checkpoint, started if needed; ``(session, started)``.
+        Warm children belong to the key that owns the job: a key makes room by closing its own,
+        or those of a key holding several, never another key's only one (the session is then
+        not kept: ``kept`` False, closed after its view)."""
         digest = hashlib.sha256(checkpoint).hexdigest()
         key = (job_id, digest)
         closing: list[ViewSession] = []
@@ -131,15 +148,20 @@ class ViewSessions:
             if current is not None:
                 closing.append(self.sessions.pop(key))
             closing += [self.sessions.pop(k) for k in list(self.sessions) if k[0] == job_id]   # older checkpoints
+            keep = True
             while len(self.sessions) >= self.most:
-                oldest = min(self.sessions, key=lambda k: self.sessions[k].used)
-                closing.append(self.sessions.pop(oldest))
+                victim = self._evictable(owner)
+                if victim is None:
+                    keep = False
+                    break
+                closing.append(self.sessions.pop(victim))
         for old in closing:
             old.close()
-        fresh = ViewSession(job_id, digest, spec, checkpoint, limits)
+        fresh = ViewSession(job_id, digest, spec, checkpoint, limits, owner)
+        fresh.kept = keep
         with self.lock:
             other = self.sessions.get(key)
-            if other is None or not other.alive():
+            if keep and (other is None or not other.alive()):
                 self.sessions[key] = fresh
             if self._reaper is None:
                 self._reaper = threading.Thread(target=self._reap, name="view-sessions-reaper", daemon=True)

@@ -61,6 +61,26 @@ def view_files(radiance: np.ndarray, gradients: np.ndarray, prb: np.ndarray | No
     return files
 
 
+def check_view(request: ViewRequest, spec: JobSpec, limits: Limits) -> None:
+    """Size a view before any child starts: its sides and spp within the service's caps
+    (``NDRF_MAX_RESOLUTION``, ``NDRF_MAX_SPP``), its samples (width x height x spp, and x prb_spp)
+    within ``NDRF_MAX_VIEW_SAMPLES``. A sensor's film not overridden is sized by the job's
+    ``render.resolution``, else by the resolution cap."""
+    width, height = request.resolution or spec.render.resolution or (limits.resolution, limits.resolution)
+    if max(width, height) > limits.resolution:
+        raise InvalidJob("resolution", f"{width} x {height} exceeds the largest side of {limits.resolution} pixels "
+                                       f"(NDRF_MAX_RESOLUTION)")
+    for field, spp in (("spp", request.spp), ("prb_spp", request.prb_spp)):
+        if spp is None:
+            continue
+        if spp > limits.spp:
+            raise InvalidJob(field, f"{spp} exceeds the limit of {limits.spp} samples per pixel (NDRF_MAX_SPP)")
+        if width * height * spp > limits.view_samples:
+            raise InvalidJob(field, f"{width} x {height} pixels x {spp} spp = {width * height * spp} samples exceed "
+                                    f"the limit of {limits.view_samples} samples of one view (NDRF_MAX_VIEW_SAMPLES):"
+                                    f" ask for fewer pixels or samples")
+
+
 def view_limits(limits: Limits) -> ChildLimits:
     return ChildLimits(memory_bytes=limits.child_memory_bytes, cpu_seconds=int(limits.view_seconds) * 2,
                        wall_seconds=limits.view_seconds)
@@ -95,13 +115,13 @@ def render_in_child(spec: JobSpec, checkpoint: bytes, request: ViewRequest,
 
 
 def render_warm(sessions: ViewSessions, job_id: str, spec: JobSpec, checkpoint: bytes, request: ViewRequest,
-                limits: Limits) -> tuple[dict, dict[str, np.ndarray], bool]:
+                limits: Limits, owner: str = "") -> tuple[dict, dict[str, np.ndarray], bool]:
     """The view from this checkpoint's warm child (started if needed); ``(meta, arrays, warm)``
     where ``warm`` says an already running child answered. A warm child that died (or was closed
     idle while this request waited) is replaced once."""
     for _ in range(2):
         try:
-            session, started = sessions.session(job_id, spec, checkpoint, limits)
+            session, started = sessions.session(job_id, spec, checkpoint, limits, owner)
         except ChildFailed as exc:
             raise InvalidJob("view", public_message(str(exc))) from None
         try:
@@ -111,15 +131,15 @@ def render_warm(sessions: ViewSessions, job_id: str, spec: JobSpec, checkpoint: 
             if started:
                 raise InvalidJob("view", public_message(str(exc))) from None
             continue
-        if kind == "invalid" and started:   # a scene or checkpoint it cannot restore: no child kept for it
+        if (kind == "invalid" and started) or not session.kept:   # no child kept for it
             sessions.drop(session)
         meta, arrays = _answer(kind, meta, blobs)
         return meta, arrays, not started
     raise InvalidJob("view", "the view child ended twice")
 
 
-def create_view(files: JobFiles, request: ViewRequest, limits: Limits, sessions: ViewSessions | None = None
-                ) -> tuple[str, dict[str, bytes], dict]:
+def create_view(files: JobFiles, request: ViewRequest, limits: Limits, sessions: ViewSessions | None = None,
+                owner: str = "") -> tuple[str, dict[str, bytes], dict]:
     """Render a view of the job of ``files`` (the caller has checked who may see it) from its latest
     checkpoint (in a warm child of ``sessions`` when given and enabled, else a one-off child) and,
     unless ``request.inline``, store its files under ``views/<id>/``; returns the id, the files
@@ -130,9 +150,10 @@ def create_view(files: JobFiles, request: ViewRequest, limits: Limits, sessions:
     if stored is None or checkpoint is None:
         raise NoCheckpoint(f"job {files.job_id} has no checkpoint yet: its fields are written with the first one")
     spec = JobSpec.model_validate(stored)
+    check_view(request, spec, limits)
     warm = False
     if sessions is not None and sessions.enabled:
-        meta, arrays, warm = render_warm(sessions, files.job_id, spec, checkpoint, request, limits)
+        meta, arrays, warm = render_warm(sessions, files.job_id, spec, checkpoint, request, limits, owner)
     else:
         meta, arrays = render_in_child(spec, checkpoint, request, limits)
     meta = {**meta, "request": request.model_dump(mode="json"), "warm": warm}

@@ -10,6 +10,10 @@ The queue's contract, which both implementations keep:
   ``lease_seconds`` after the last renewal). An attempt is *alive* while its heartbeat is; a
   delivery whose owner stopped renewing for ``lease_seconds`` is handed to the next worker, which
   counts a crash only if the attempt the record names is no longer alive;
+* **a fair share per key**: waiting jobs are kept per owner (the hash of the API key that
+  submitted them) and ``lease`` hands out the next job of the owner served least recently, so a
+  key's job waits for at most one job of each other key per free worker, never for another key's
+  whole queue. A job handed back (``requeue``: it was running) goes ahead of every waiting one;
 * **acks are owned**: ``ack`` and ``requeue`` act only on a delivery the caller still owns (or on
   the attempt it adopted after the queue lost its data): a stale attempt never removes the
   delivery of the worker that took its job over.
@@ -19,6 +23,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Iterable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from enum import Enum
 
@@ -48,20 +53,32 @@ class Renewal(Enum):
         return self is not Renewal.LOST
 
 
+class LockBusy(Exception):
+    """A per-key lock stayed held by someone else for the whole wait."""
+
+
 class JobQueue(ABC):
-    """At-least-once queue of job ids with owned deliveries and attempt heartbeats."""
+    """At-least-once queue of job ids with owned deliveries, attempt heartbeats and a fair share
+    of the workers per owner."""
 
     lease_seconds: float = 30.0
 
     @abstractmethod
-    def enqueue(self, job_id: str, *, unless_alive: str | None = None) -> bool:
-        """Queue the job unless it already is (waiting, leased or running), or, with
-        ``unless_alive``, unless that attempt of it is alive. True if an entry was added."""
+    def enqueue(self, job_id: str, *, unless_alive: str | None = None, owner: str = "") -> bool:
+        """Queue the job in ``owner``'s share unless it already is (waiting, leased or running),
+        or, with ``unless_alive``, unless that attempt of it is alive. True if an entry was added."""
 
     @abstractmethod
     def lease(self, consumer: str, block_seconds: float) -> Lease | None:
         """The next job for ``consumer``: first a delivery whose owner stopped renewing for a lease
-        period, otherwise a new one; ``None`` after ``block_seconds`` without work."""
+        period, then a job handed back, then the next waiting job of the owner served least
+        recently; ``None`` after ``block_seconds`` without work."""
+
+    @abstractmethod
+    def hold(self, name: str, seconds: float = 60.0, wait: float = 30.0) -> AbstractContextManager[None]:
+        """A lock on ``name`` shared by every process of the queue (a per-key count is checked and
+        taken under it in one step: :meth:`services.jobs.service.JobService.submit`). Held at most
+        ``seconds`` (a holder that died frees it then); :class:`LockBusy` after ``wait``."""
 
     @abstractmethod
     def renew(self, lease: Lease, attempt: str) -> Renewal:
@@ -86,6 +103,12 @@ class JobQueue(ABC):
     @abstractmethod
     def depth(self) -> dict[str, int]:
         """``{"waiting": ..., "leased": ...}``."""
+
+    @abstractmethod
+    def running(self, owner: str) -> int:
+        """Jobs of ``owner`` handed to workers and not yet acked (at most the queue's
+        ``running_per_owner``, ``NDRF_MAX_RUNNING_JOBS_PER_KEY``, when set: a worker takes another
+        owner's job rather than pass it)."""
 
     @abstractmethod
     def queued_ids(self) -> set[str]:

@@ -1,8 +1,9 @@
 """The embedded default: an in-process queue, event bus and stream slots (no Redis). One process.
 
 The queue keeps the contract of :mod:`services.queue.base` with a lock instead of Lua: one marker
-per job, owned deliveries, heartbeats that expire, and the takeover of a delivery whose runner
-stopped renewing (an embedded runner thread that died and was restarted picks its job up again).
+per job, owned deliveries, heartbeats that expire, the takeover of a delivery whose runner
+stopped renewing (an embedded runner thread that died and was restarted picks its job up again),
+and waiting jobs kept per owner, served least recently served owner first.
 The event bus wakes threads with a condition and event-loop waiters with futures resolved through
 ``call_soon_threadsafe`` (publishers are worker threads).
 """
@@ -16,10 +17,11 @@ import threading
 import time
 import uuid
 from collections import defaultdict, deque
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
-from services.queue.base import EventBus, JobQueue, Lease, Renewal, StreamSlots
+from services.queue.base import EventBus, JobQueue, Lease, LockBusy, Renewal, StreamSlots
 
 
 @dataclass
@@ -31,9 +33,15 @@ class _Delivery:
 
 
 class LocalJobQueue(JobQueue):
-    def __init__(self, lease_seconds: float = 30.0):
-        self.lease_seconds = lease_seconds
-        self._waiting: deque[tuple[str, str, int]] = deque()    # (job, entry, deliveries so far)
+    def __init__(self, lease_seconds: float = 30.0, running_per_owner: int = 0):
+        self.lease_seconds, self.running_per_owner = lease_seconds, running_per_owner
+        self._running: dict[str, set[str]] = defaultdict(set)   # owner -> jobs handed out, not acked
+        self._job_owner: dict[str, str] = {}
+        self._ready: deque[tuple[str, str, int]] = deque()      # handed back: (job, entry, deliveries so far)
+        self._waiting: dict[str, deque[tuple[str, str, int]]] = {}   # owner -> its waiting jobs
+        self._served: dict[str, int] = {}                       # owner -> turn it was last served at
+        self._turns = itertools.count(1)
+        self._locks: dict[str, threading.Lock] = defaultdict(threading.Lock)
         self._leased: dict[str, _Delivery] = {}
         self._markers: dict[str, str] = {}                      # job -> entry, or "~attempt" (adopted)
         self._beats: dict[tuple[str, str], float] = {}          # (job, attempt) -> expiry
@@ -41,18 +49,41 @@ class LocalJobQueue(JobQueue):
         self._ids = itertools.count(1)
         self._changed = threading.Condition()
 
-    def enqueue(self, job_id: str, *, unless_alive: str | None = None) -> bool:
+    def enqueue(self, job_id: str, *, unless_alive: str | None = None, owner: str = "") -> bool:
         with self._changed:
             if job_id in self._markers or (unless_alive and self._alive(job_id, unless_alive)):
                 return False
-            self._add(job_id)
+            entry = str(next(self._ids))
+            self._waiting.setdefault(owner, deque()).append((job_id, entry, 0))
+            self._markers[job_id] = entry
+            self._changed.notify()
             return True
 
     def _add(self, job_id: str, count: int = 0) -> None:
+        """Hand a job back: it goes ahead of every waiting one."""
         entry = str(next(self._ids))
-        self._waiting.append((job_id, entry, count))
+        self._ready.append((job_id, entry, count))
         self._markers[job_id] = entry
         self._changed.notify()
+
+    def _next_waiting(self) -> tuple[str, str, int] | None:
+        if self._ready:
+            return self._ready.popleft()
+        if not self._waiting:
+            return None
+        cap = self.running_per_owner
+        open_ = [o for o in self._waiting if not cap or len(self._running[o]) < cap]
+        if not open_:
+            return None
+        owner = min(open_, key=lambda o: (self._served.get(o, 0), o))
+        jobs = self._waiting[owner]
+        got = jobs.popleft()
+        if not jobs:
+            del self._waiting[owner]
+        self._served[owner] = next(self._turns)
+        self._running[owner].add(got[0])
+        self._job_owner[got[0]] = owner
+        return got
 
     def lease(self, consumer: str, block_seconds: float) -> Lease | None:
         deadline = time.monotonic() + max(0.01, block_seconds)
@@ -63,8 +94,9 @@ class LocalJobQueue(JobQueue):
                     if now - held.renewed >= self.lease_seconds:
                         held.consumer, held.renewed, held.count = consumer, now, held.count + 1
                         return Lease(held.job_id, entry, held.count, consumer)
-                if self._waiting:
-                    job_id, entry, count = self._waiting.popleft()
+                waiting = self._next_waiting()
+                if waiting is not None:
+                    job_id, entry, count = waiting
                     self._leased[entry] = _Delivery(job_id, consumer, now, count + 1)
                     return Lease(job_id, entry, count + 1, consumer)
                 if now >= deadline:
@@ -95,6 +127,10 @@ class LocalJobQueue(JobQueue):
         if held is None or held.consumer != lease.consumer:
             return False
         del self._leased[lease.entry_id]
+        owner = self._job_owner.pop(lease.job_id, None)
+        if owner is not None:
+            self._running[owner].discard(lease.job_id)
+            self._changed.notify_all()
         if self._markers.get(lease.job_id) == lease.entry_id:
             del self._markers[lease.job_id]
         if attempt:
@@ -115,11 +151,27 @@ class LocalJobQueue(JobQueue):
 
     def depth(self) -> dict[str, int]:
         with self._changed:
-            return {"waiting": len(self._waiting), "leased": len(self._leased)}
+            waiting = len(self._ready) + sum(len(jobs) for jobs in self._waiting.values())
+            return {"waiting": waiting, "leased": len(self._leased)}
 
     def queued_ids(self) -> set[str]:
         with self._changed:
             return set(self._markers)
+
+    def running(self, owner: str) -> int:
+        with self._changed:
+            return len(self._running.get(owner, ()))
+
+    @contextmanager
+    def hold(self, name: str, seconds: float = 60.0, wait: float = 30.0) -> Iterator[None]:
+        with self._changed:
+            lock = self._locks[name]
+        if not lock.acquire(timeout=wait):
+            raise LockBusy(name)
+        try:
+            yield
+        finally:
+            lock.release()
 
     def orphans(self, candidates: Iterable[str], grace_seconds: float) -> set[str]:
         now = time.monotonic()

@@ -6,8 +6,11 @@
     ndrf:alive:<job>:<attempt>     heartbeat of a running attempt (value: consumer; PX = the lease)
     ndrf:orphans                   hash job -> when the reconciler first missed it (Redis TIME, ms)
 
-    enqueue    Lua: no-op if the job has a marker (or the named attempt is alive); else XADD + marker
-    lease      XAUTOCLAIM entries idle >= lease (their owner stopped renewing), else XREADGROUP
+    enqueue    Lua: no-op if the job has a marker (or the named attempt is alive); else the job joins
+               its owner's waiting list (marker ``w``): :mod:`services.queue.redis_fair`
+    lease      XAUTOCLAIM entries idle >= lease (their owner stopped renewing), else Lua: an unread
+               entry of the stream, else the least recently served owner's next job moved into the
+               stream and read (XREADGROUP), in one step; idle workers block on ``ndrf:wake``
     renew      Lua: if XPENDING names this consumer as the entry's owner: XCLAIM JUSTID (idle = 0) and
                refresh the heartbeat; owned by another consumer: lost; not pending at all and the job
                has no marker (Redis restarted empty): adopt (marker ``~<attempt>`` + heartbeat)
@@ -29,13 +32,15 @@ import json
 import logging
 import time
 import uuid
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import redis
 import redis.asyncio
 
-from services.queue.base import EventBus, JobQueue, Lease, Renewal, SlotsUnavailable, StreamSlots
+from services.queue import redis_fair as fair
+from services.queue.base import EventBus, JobQueue, Lease, LockBusy, Renewal, SlotsUnavailable, StreamSlots
 from services.queue.redis_waits import REDIS_ERRORS, Quiet, StreamWaits, command_client
 
 log = logging.getLogger(__name__)
@@ -63,16 +68,6 @@ local function stale(job, m)
 end
 """
 
-_ENQUEUE = _STALE + """
-local held = redis.call('HGET', KEYS[2], ARGV[1])
-if held and not stale(ARGV[1], held) then return false end
-if KEYS[3] ~= '' and redis.call('EXISTS', KEYS[3]) == 1 then return false end
-redis.pcall('XGROUP', 'CREATE', KEYS[1], ARGV[2], '0', 'MKSTREAM')
-local id = redis.call('XADD', KEYS[1], '*', 'job', ARGV[1])
-redis.call('HSET', KEYS[2], ARGV[1], id)
-return id
-"""
-
 # KEYS stream, markers, beat   ARGV group, consumer, entry, lease ms, job, attempt
 _RENEW = _OWNER + """
 if p then
@@ -93,7 +88,7 @@ return 2
 """
 
 # KEYS stream, markers, beat   ARGV group, consumer, entry, job, attempt, requeue (1/0)
-_RELEASE = _OWNER + """
+_RELEASE = _OWNER + "local function release_running()\n" + fair.RELEASE_RUNNING + "end\n" + """
 local mine = 0
 local m = redis.call('HGET', KEYS[2], ARGV[4])
 if p then
@@ -108,10 +103,13 @@ elseif ARGV[5] ~= '' and m == '~' .. ARGV[5] then
   mine = 1
 end
 if KEYS[3] ~= '' then redis.call('DEL', KEYS[3]) end
+if mine == 1 then release_running() end
 if mine == 1 and ARGV[6] == '1' and not m then
   redis.pcall('XGROUP', 'CREATE', KEYS[1], ARGV[1], '0', 'MKSTREAM')
   local id = redis.call('XADD', KEYS[1], '*', 'job', ARGV[4])
   redis.call('HSET', KEYS[2], ARGV[4], id)
+  redis.call('RPUSH', 'ndrf:wake', '1')
+  redis.call('LTRIM', 'ndrf:wake', -16, -1)
 end
 return mine
 """
@@ -190,11 +188,15 @@ def connect(url: str) -> redis.Redis:
 
 
 class RedisJobQueue(JobQueue):
-    def __init__(self, client: redis.Redis, lease_seconds: float):
+    def __init__(self, client: redis.Redis, lease_seconds: float, running_per_owner: int = 0):
         self.redis = client
+        self.running_per_owner = running_per_owner
         self.lease_seconds = lease_seconds
         self.lease_ms = int(lease_seconds * 1000)
-        self._enqueue = client.register_script(_ENQUEUE)
+        self._enqueue = client.register_script(fair.ENQUEUE)
+        self._dispatch = client.register_script(fair.DISPATCH)
+        self._waiting = client.register_script(fair.WAITING)
+        self._unlock = client.register_script(fair.UNLOCK)
         self._renew = client.register_script(_RENEW)
         self._release = client.register_script(_RELEASE)
         self._orphans = client.register_script(_ORPHANS)
@@ -218,9 +220,30 @@ class RedisJobQueue(JobQueue):
             self._ensure_group()
             return fn()
 
-    def enqueue(self, job_id: str, *, unless_alive: str | None = None) -> bool:
+    def enqueue(self, job_id: str, *, unless_alive: str | None = None, owner: str = "") -> bool:
         beat = BEAT.format(job_id, unless_alive) if unless_alive else ""
-        return self._enqueue(keys=[STREAM, MARKERS, beat], args=[job_id, GROUP]) is not None
+        return self._enqueue(keys=[STREAM, MARKERS, beat, fair.OWNERS, fair.SERVED, fair.WAKE],
+                             args=[job_id, GROUP, owner]) is not None
+
+    def _dispatched(self, consumer: str) -> list[Entry]:
+        reply = self._dispatch(keys=[STREAM, MARKERS, fair.OWNERS, fair.SERVED, fair.TURN],
+                               args=[GROUP, consumer, self.running_per_owner])
+        # a script's XREADGROUP reply is raw: [[stream, [[id, [field, value, ...]]]]]
+        entries = reply[0][1] if reply else []
+        return [(str(entry_id), dict(zip(flat[::2], flat[1::2]))) for entry_id, flat in entries]
+
+    @contextmanager
+    def hold(self, name: str, seconds: float = 60.0, wait: float = 30.0) -> Iterator[None]:
+        key, token = fair.LOCK.format(name), uuid.uuid4().hex
+        deadline = time.monotonic() + wait
+        while not self.redis.set(key, token, nx=True, px=int(seconds * 1000)):
+            if time.monotonic() > deadline:
+                raise LockBusy(name)
+            time.sleep(0.02)
+        try:
+            yield
+        finally:
+            self._unlock(keys=[key], args=[token])
 
     def _delivery(self, entry_id: str) -> int:
         pending = self.redis.xpending_range(STREAM, GROUP, min=entry_id, max=entry_id, count=1)
@@ -238,8 +261,10 @@ class RedisJobQueue(JobQueue):
                 log.warning("took over job %s (entry %s) from a consumer that stopped renewing", fields["job"],
                             entry_id)
                 return Lease(fields["job"], entry_id, self._delivery(entry_id), consumer)
-            read = _read_entries(self.redis.xreadgroup(GROUP, consumer, {STREAM: ">"}, count=1,
-                                                       block=max(1, int(block_seconds * 1000))))
+            read = self._dispatched(consumer)
+            if not read:
+                self.redis.blpop([fair.WAKE], timeout=max(0.01, block_seconds))
+                read = self._dispatched(consumer)
             if not read:
                 return None
             entry_id, fields = read[0]
@@ -268,15 +293,19 @@ class RedisJobQueue(JobQueue):
         return self._release_entry(lease, attempt, requeue=True)
 
     def depth(self) -> dict[str, int]:
+        waiting = int(self._waiting(keys=[fair.OWNERS]))
         try:
             groups = {g["name"]: g for g in self.redis.xinfo_groups(STREAM)}
         except redis.ResponseError:
-            return {"waiting": 0, "leased": 0}
+            return {"waiting": waiting, "leased": 0}
         group = groups.get(GROUP, {})
-        return {"waiting": int(group.get("lag") or 0), "leased": int(group.get("pending") or 0)}
+        return {"waiting": waiting + int(group.get("lag") or 0), "leased": int(group.get("pending") or 0)}
 
     def queued_ids(self) -> set[str]:
         return set(self._held(keys=[MARKERS]))
+
+    def running(self, owner: str) -> int:
+        return int(self.redis.scard(fair.RUNNING + owner))
 
     def orphans(self, candidates: Iterable[str], grace_seconds: float) -> set[str]:
         jobs = sorted(set(candidates))

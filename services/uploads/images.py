@@ -48,6 +48,12 @@ class ImageInfo:
     def pixels(self) -> int:
         return self.width * self.height
 
+    @property
+    def values(self) -> int:
+        """Numbers a decoder makes of it: width x height x channels (a channel of a 700-channel EXR
+        costs as much as a whole single-channel image)."""
+        return self.width * self.height * self.channels
+
 
 def image_header(data: bytes) -> ImageInfo:
     """Format, width, height and channels from the header; raise :class:`ImageHeaderError` for
@@ -71,9 +77,12 @@ def image_header(data: bytes) -> ImageInfo:
 
 
 def check_image(field: str, data: bytes, max_pixels: int, limit_name: str = "NDRF_MAX_IMAGE_PIXELS",
-                formats: tuple[str, ...] | None = None) -> ImageInfo:
-    """:func:`image_header`, then the pixel cap (and the accepted ``formats``, if given), as
-    ``InvalidJob(field, ...)`` naming the limit. Call it before decoding."""
+                formats: tuple[str, ...] | None = None, max_values: int | None = None,
+                values_name: str = "4 channels at the pixel limit") -> ImageInfo:
+    """:func:`image_header`, then the pixel cap, the cap on decoded values (width x height x
+    channels; default ``4 * max_pixels``) and the accepted ``formats``, if given, as
+    ``InvalidJob(field, ...)`` naming the limit: the one place every image is sized before it is
+    decoded. Call it before decoding."""
     try:
         info = image_header(data)
     except ImageHeaderError as exc:
@@ -84,6 +93,11 @@ def check_image(field: str, data: bytes, max_pixels: int, limit_name: str = "NDR
     if info.pixels > max_pixels:
         raise InvalidJob(field, f"is a {info.width} x {info.height} {info.format.upper()} image "
                                 f"({info.pixels} pixels); at most {max_pixels} pixels are allowed ({limit_name})")
+    most = 4 * max_pixels if max_values is None else max_values
+    if info.values > most:
+        raise InvalidJob(field, f"is a {info.width} x {info.height} {info.format.upper()} image of {info.channels} "
+                                f"channels ({info.values} values decoded); at most {most} values are allowed "
+                                f"({values_name}): refused before decoding")
     log.debug("%s: %s %dx%d, %d channels", field, info.format, info.width, info.height, info.channels)
     return info
 

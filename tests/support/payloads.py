@@ -75,8 +75,9 @@ def npy(array: np.ndarray) -> bytes:
     return buffer.getvalue()
 
 
-def exr_header(width: int, height: int, channels: str = "BGR", flags: int = 0) -> bytes:
-    """A scanline OpenEXR header per the file layout: magic, version, attributes, terminator."""
+def exr_header(width: int, height: int, channels: str | list[str] = "BGR", flags: int = 0) -> bytes:
+    """A scanline OpenEXR header per the file layout: magic, version, attributes, terminator
+    (``channels``: their names, one letter each or a list)."""
     def attribute(name: str, kind: str, value: bytes) -> bytes:
         return name.encode() + b"\0" + kind.encode() + b"\0" + struct.pack("<i", len(value)) + value
 

@@ -227,3 +227,11 @@ def test_an_experiment_sweeps_the_requested_accuracy_and_each_run_stops_at_its_o
     assert [job.stop.standard_error for job in jobs] == [0.01, 0.002]
     with pytest.raises(InvalidExperiment, match="stop"):
         validate_runs(base, expand(normalize(spec(grid={"stop.standard_error": [-1.0]}))[1], base), Limits(), None)
+
+
+def test_an_experiment_loads_at_most_experiment_checks_distinct_scenes_when_it_is_created():
+    """Issue 38: 40 distinct render settings were 40 sandboxed checks in a row in the API."""
+    calls = []
+    base, sweep = normalize(spec(grid={"render.spp": list(range(1, 41))}))
+    specs = validate_runs(base, expand(sweep, base), Limits(experiment_checks=4), lambda job, _: calls.append(job))
+    assert len(specs) == 40 and [job.render.spp for job in calls] == [1, 2, 3, 4]

@@ -120,3 +120,28 @@ def test_accepted_formats_can_be_restricted():
     with pytest.raises(InvalidJob, match="is a JPEG image; accepted here: PNG, EXR, NPY"):
         check_image("t", jpeg(8, 8), 100, formats=("png", "exr", "npy"))
     assert check_image("t", png(8, 8), 64, formats=("png",)).pixels == 64
+
+
+def test_channels_count_before_decoding_exr_npy_and_png():
+    """Issue 38: a 5.7 MB EXR declaring 700 channels (5.5 GiB decoded) passed the pixel cap."""
+    import base64
+
+    from schemas.job import JobSpec
+    from services.limits import check_target_headers
+    from services.settings import Limits
+    from tests.support.jobs import small_job
+
+    many = exr_header(1400, 1400, [f"c{i}" for i in range(700)])
+    assert image_header(many) == ImageInfo("exr", 1400, 1400, 700) and len(many) < 20_000
+    target = {"sensor": 0, "data": base64.b64encode(many).decode()}
+    target = {"sensor": 0, "data": base64.b64encode(many).decode()}
+    job = JobSpec.model_validate({**small_job(), "targets": {"images": [target]}})
+    with pytest.raises(InvalidJob) as caught:
+        check_target_headers(job, Limits())
+    assert caught.value.field == "targets.images[0].data"
+    assert "700 channels (1372000000 values decoded)" in caught.value.message
+    assert "NDRF_MAX_IMAGE_VALUES" in caught.value.message and "before decoding" in caught.value.message
+    wide = npy(np.zeros((64, 64, 300), np.uint8))
+    with pytest.raises(InvalidJob, match="300 channels"):
+        check_image("t", wide, max_pixels=64 * 64)
+    assert check_image("t", png(64, 64, "RGBA"), max_pixels=64 * 64).values == 64 * 64 * 4   # 4 channels pass

@@ -1,6 +1,7 @@
 // #/jobs: every job with its progress, refreshed every 2 s (the pages already shown, newest first).
 
 import { getJSON } from "../api.js";
+import { usageStrip } from "./usage.js";
 import { clear, fmtDuration, fmtNum, fmtTime, h, maxAbsError, problemText, statusBadge } from "../dom.js";
 
 const PAGE = 50;
@@ -51,9 +52,11 @@ export function jobsView(root) {
     body);
   const empty = h("div.empty-state", { hidden: true }, h("p", "No jobs yet."),
     h("a.btn.btn-primary", { href: "#/submit" }, "Submit a job"));
+  const usage = usageStrip();
   clear(root,
     h("div.page-head", h("h1", "Jobs ", count), h("span.spacer"), h("span.live-dot", { title: "refreshed every 2 s" }, "live"),
       h("a.btn.btn-primary", { href: "#/submit", dataset: { testid: "new-job" } }, "New job")),
+    usage.element,
     banner,
     h("div.card.card-flush", h("div.table-scroll", table), empty),
     h("div.center", more));
@@ -89,5 +92,5 @@ export function jobsView(root) {
     if (alive) timer = setTimeout(refresh, POLL_MS);
   }
   refresh();
-  return () => { alive = false; clearTimeout(timer); };
+  return () => { alive = false; clearTimeout(timer); usage.stop(); };
 }
