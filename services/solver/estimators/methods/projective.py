@@ -1,0 +1,55 @@
+"""``prb_projective`` and ``direct_projective``: Mitsuba's projective-sampling integrators (Zhang et
+al. 2023, "Projective Sampling for Differentiable Rendering of Geometry"), the methods for geometry.
+
+A render's derivative with respect to a shape's position has two parts: the *interior* term, the
+derivative of the shading at fixed visibility (what ``prb`` and every camera-hit method compute),
+and the *boundary* term, the light that appears or vanishes as a silhouette or a shadow edge moves.
+The boundary term is an integral over the visibility discontinuities; these integrators sample it
+by projecting paths onto the silhouettes of the scene's shapes (``sppp`` primary, ``sppi``
+indirect samples) and add it to the interior term (``sppc``); each defaults to the render's spp.
+
+``prb_projective``    every bounce (Path Replay Backpropagation with the boundary terms): the job's
+                      :class:`~services.solver.estimators.render.PathDepth`
+``direct_projective`` direct illumination only (emitters seen directly and one bounce): exact
+                      where the scene's light takes no second bounce, else biased (``auto``
+                      chooses it only where the light of longer paths is negligible)
+
+The interface is :class:`~services.solver.estimators.methods.prb.Prb`'s, and so is the Jacobian:
+forward-mode renders, one per group of scalars that change distinct RGB channels (a pose's
+scalars change every channel: one render each). The renders are traced at every call (not
+frozen): the integrators build their silhouette-sampling guide in Python at each render.
+"""
+
+from __future__ import annotations
+
+from schemas.methods import Method
+from services.solver.estimators.methods.prb import Prb
+from services.solver.estimators.render import PathDepth
+
+
+class PrbProjective(Prb):
+    """``prb`` with the boundary terms of moving silhouettes (module docstring)."""
+
+    name = Method.PRB_PROJECTIVE
+    integrator_type = "prb_projective"
+    geometry_refusal = None
+
+    def __init__(self, *, depth: PathDepth, radiance: bool = False, differential: bool = False, freeze: bool = False):
+        super().__init__(depth=depth, radiance=radiance, differential=differential, freeze=False)
+
+    @property  # type: ignore[override]
+    def freeze(self) -> bool:
+        """Never: Mitsuba 3.9 refuses projective integrators inside frozen functions."""
+        return False
+
+    @freeze.setter
+    def freeze(self, value: bool) -> None:
+        """The job's ``render.freeze`` does not apply (:attr:`freeze`)."""
+
+
+class DirectProjective(PrbProjective):
+    """Direct illumination with the boundary terms of moving silhouettes and shadows (module
+    docstring); the job's path depth does not apply (it stops after one bounce)."""
+
+    name = Method.DIRECT_PROJECTIVE
+    integrator_type = "direct_projective"
