@@ -125,11 +125,12 @@ def run_loop(job: dict, shape: str, seconds: float, folder: Path) -> dict:
                  .rotate([0, 1, 0], a.y).rotate([1, 0, 0], a.x).translate(mi.Vector3f(*(-centre))))
         params[key] = dr.ravel(trafo @ v0)
         params.update()
-        loss = 0.0
+        losses = []
         for sensor, target in targets.items():
-            image = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=LOOP_SPP, seed=1000 * it + sensor)
-            loss = loss + dr.mean(dr.square(image[..., :3] - target))
-        dr.backward(loss)
+            image = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=LOOP_SPP,
+                              seed=dr.opaque(mi.UInt32, 1000 * it + sensor))
+            losses.append(dr.mean(dr.square(image[..., :3] - target)))
+        dr.backward(sum(losses[1:], losses[0]))
         opt.step()
         values = np.concatenate([np.asarray(opt["t"], np.float64).reshape(-1),
                                  ANGLE_SCALE * np.asarray(opt["a"], np.float64).reshape(-1)])
@@ -164,7 +165,8 @@ def main(argv: list[str] | None = None) -> None:
 
     use_mitsuba()
     name = "pose-block" if args.mesh is None else args.mesh.stem
-    runs, rows = [], []
+    runs: list[dict] = []
+    rows: list[list] = []
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         scene, shape = _scene(args.mesh, args.resolution, folder)
@@ -176,9 +178,9 @@ def main(argv: list[str] | None = None) -> None:
             rows += [_row(f"product ({product['method']}, {product['optimizer']})", seed, product),
                      _row("tutorial loop", seed, loop)]
             log.info("seed %d: product %s, loop %s", seed, product["final_error"], loop["final_error"])
-    summary = {}
+    summary: dict[str, dict] = {}
     for who in ("product", "loop"):
-        errors = np.array([run[who]["final_error"] for run in runs])
+        errors = np.array([run[who]["final_error"] for run in runs], np.float64)
         summary[who] = {"translation_median": float(np.median(errors[:, 0])),
                         "translation_range": [float(errors[:, 0].min()), float(errors[:, 0].max())],
                         "rotation_median": float(np.median(errors[:, 1])),

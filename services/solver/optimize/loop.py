@@ -47,6 +47,7 @@ from services.solver.optimize.setup import Prepared, prepare
 from services.solver.optimize.state import RunState, describe, initial_state, restore, save
 from services.solver.optimize.textures import TextureReport, record_fields
 from services.solver.optimize.views import ViewStream
+from services.solver.scene.params import ParameterSet
 from services.solver.seeds import derive_seed
 from services.solver.training.trainer import FieldTrainer, fields_of
 
@@ -123,7 +124,7 @@ class InverseRenderingRun:
         self.method_name = str(spec.method)  # the method that runs: an auto job's choice once resolved
         self.listed: TextureReport | None = None  # which scalars reports list (textures are summarised)
         self.seconds: dict = {}                   # preparing and deciding (plan.json's prepared_seconds)
-        self.parameter_set = None                 # the job's ParameterSet once prepared (its poses' reports)
+        self.parameter_set: ParameterSet | None = None   # the job's parameters once prepared (their poses)
 
     def execute(self) -> RunOutcome:
         """Run to the end, to a cancel or to an interruption. A job that fails returns a failed

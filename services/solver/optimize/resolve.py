@@ -36,8 +36,8 @@ samples per pixel). The rules and what they rest on (``bench/results/``):
   ``prb_projective``; Levenberg-Marquardt while its Jacobian costs at most
   :data:`MAX_GEOMETRY_RENDERS` forward renders per view (one per pose scalar), every view at
   :data:`GEOMETRY_SPP` spp per iteration (the boundary term at 1 spp is noise; Mitsuba's pose
-  tutorial renders 16), and steps measured in :meth:`ParameterSet.step_units
-  <services.solver.scene.params.ParameterSet.step_units>` (a degree is not a scene unit).
+  tutorial renders 16), and steps measured in the shape's size (:meth:`ParameterSet.step_units
+  <services.solver.scene.params.ParameterSet.step_units>`: a degree is not a scene unit).
 """
 
 from __future__ import annotations
@@ -189,9 +189,9 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
     units = tuple(float(u) for u in parameters.step_units()) if parameters.has_geometry else ()
     if any(u != 1.0 for u in units):
         decide("step_units", ", ".join(f"{u:.4g}" for u in sorted(set(units))),
-               "a rotation's steps are measured in the angle that moves the shape's farthest vertex by one scene "
-               "unit, so that the learning rate and the trust region mean the same distance for a rotation as for "
-               "a translation (degrees are not scene units)")
+               "a pose's steps are measured in its shape's size: a translation in the shape's radius, a rotation in "
+               "radians (which move its farthest vertex by one radius), so that the learning rate and the trust "
+               "region mean the same share of the shape for both (degrees are not scene units)")
     optimizer = _optimizer(spec, method, parameters, layout, decide)
     growth, start = CLOSED_GROWTH, CLOSED_START
     if optimizer == "levenberg-marquardt":

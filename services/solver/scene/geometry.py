@@ -113,7 +113,7 @@ class ShapePose:
     faces: np.ndarray
     centre: np.ndarray
     values: dict[str, object] = field(default_factory=dict)
-    _v0: object = field(default=None, repr=False)   # v0 as a Dr.Jit Point3f
+    _v0: mi.Point3f | None = field(default=None, repr=False)   # v0 as a Dr.Jit Point3f
 
     @classmethod
     def of(cls, params: mi.SceneParameters, shape: str) -> ShapePose:
@@ -137,6 +137,7 @@ class ShapePose:
         """Set the mesh's ``vertex_positions`` from the current pose (differentiably); the caller
         calls ``params.update()``."""
         t, rotation = self.values[TRANSLATE], _rotation_dr(self.values[ROTATE])
+        assert self._v0 is not None   # set by of()
         d = self._v0 - mi.Point3f(*(float(x) for x in self.centre))
         moved = [rotation[i][0] * d.x + rotation[i][1] * d.y + rotation[i][2] * d.z
                  + float(self.centre[i]) + dr.gather(mi.Float, t, i) for i in range(3)]

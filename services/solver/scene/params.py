@@ -198,7 +198,7 @@ class ParameterSet:
         return bool(self.poses)
 
     def _geometry_keys(self) -> set[str]:
-        return {key for key in self.keys if split_key(key) is not None and split_key(key)[0] in self.poses}
+        return {key for key in self.keys if (split := split_key(key)) is not None and split[0] in self.poses}
 
     @property
     def geometry(self) -> list[bool]:
@@ -206,16 +206,18 @@ class ParameterSet:
         return [info.owner == "geometry" for info in self.infos for _ in range(info.size)]
 
     def step_units(self) -> np.ndarray:
-        """Per scalar, ``(n,)``: the size of one unit of the steps in the scalar's own units. 1 but
-        for a rotation, whose unit is the angle that moves the shape's farthest vertex by one scene
-        unit (``180 / (pi r)`` degrees, ``r`` the shape's radius about its centre): a step of a
-        translation and of a rotation then move the surface alike."""
-        out = []
+        """Per scalar, ``(n,)``: the size of one unit of the optimizer's steps in the scalar's own
+        units. 1 but for a pose, whose steps are measured in the size of its shape: a translation
+        in the shape's radius ``r`` about its centre (scene units), a rotation in radians
+        (``180 / pi`` degrees, which move the farthest vertex by ``r``): a learning rate then means
+        the same share of the shape for both, and for a bunny as for a building."""
+        out: list[float] = []
         for key, info in zip(self.keys, self.infos):
             geometry = split_key(key) if info.owner == "geometry" else None
-            radius = self.poses[geometry[0]].radius if geometry is not None else 0.0
-            unit = 180.0 / (np.pi * radius) if geometry is not None and geometry[1] == "to_world.rotate" \
-                and radius > 0 else 1.0
+            unit = 1.0
+            if geometry is not None:
+                radius = self.poses[geometry[0]].radius or 1.0
+                unit = radius if geometry[1] == "to_world.translate" else 180.0 / np.pi
             out += [unit] * info.size
         return np.asarray(out, np.float64)
 

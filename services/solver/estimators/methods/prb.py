@@ -38,6 +38,8 @@ after, the same. Forward mode is seeded into the padded copy before the call
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -120,8 +122,9 @@ class Prb(GradientMethod):
 
     name = Method.PRB
     uses = frozenset()
-    geometry_refusal = ("Mitsuba's prb has no boundary term for moving silhouettes (its documentation: not for "
-                        "geometry); prb_projective or direct_projective differentiate a pose")
+    geometry_refusal: ClassVar[str | None] = (
+        "Mitsuba's prb has no boundary term for moving silhouettes (its documentation: not for geometry); "
+        "prb_projective or direct_projective differentiate a pose")
     #: the Mitsuba integrator's type
     integrator_type = "prb"
 

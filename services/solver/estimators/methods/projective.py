@@ -29,6 +29,8 @@ frozen): the integrators build their silhouette-sampling guide in Python at each
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 from schemas.methods import Method
 from services.solver.backend import use_mitsuba
 from services.solver.estimators.methods.prb import Prb
@@ -43,14 +45,14 @@ class PrbProjective(Prb):
 
     name = Method.PRB_PROJECTIVE
     integrator_type = "prb_projective"
-    geometry_refusal = None
+    geometry_refusal: ClassVar[str | None] = None
 
     def __init__(self, *, depth: PathDepth, radiance: bool = False, differential: bool = False, freeze: bool = False):
         super().__init__(depth=depth, radiance=radiance, differential=differential, freeze=False)
         self.integrator = use_mitsuba().load_dict({"type": self.integrator_type, **depth.integrator_props(),
                                                    "guiding": GUIDING})
 
-    @property  # type: ignore[override]
+    @property
     def freeze(self) -> bool:
         """Never: Mitsuba 3.9 refuses projective integrators inside frozen functions."""
         return False
