@@ -127,6 +127,8 @@ class Prb(GradientMethod):
         "prb_projective or direct_projective differentiate a pose")
     #: the Mitsuba integrator's type
     integrator_type = "prb"
+    #: whether forward mode is pushed from the parameters before the render (:func:`push_tangents`)
+    pushes_tangents = True
 
     def __init__(self, *, depth: PathDepth, radiance: bool = False, differential: bool = False, freeze: bool = True):
         super().__init__(radiance=radiance, differential=differential)
@@ -188,7 +190,11 @@ class Prb(GradientMethod):
         step = self._frozen_tangent if self.freeze else tangent_render
         with params.tracking():  # re-creates the edges from the parameters to what derives from them
             tangents = params.tangents(scalars)
-            push_tangents({key: params.variable(key) for key in tangents}, tangents)
+            if self.pushes_tangents:
+                push_tangents({key: params.variable(key) for key in tangents}, tangents)
+            else:   # seeded on the leaves only: the render's forward_to carries them (projective: below)
+                for key, tangent in tangents.items():
+                    dr.set_grad(params.variable(key), tangent)
             primal, tangent = step(problem.scene.scene, params.params, opaque_seed(seed), sensor=sensor, spp=spp,
                                    integrator=self.integrator)
             for key in tangents:

@@ -21,6 +21,13 @@ project's 2-core machine (under load), against 1.0-1.1 s without it (``guiding: 
 samples), so the methods render without a guide (:data:`GUIDING`); Mitsuba's tutorial loop, in
 ``bench.geometry``, keeps the default.
 
+Forward mode. The tangents are set on the parameters' leaves and carried by the render's own
+``dr.forward_to`` through the vertices into the integrator: pushed to the vertices before the
+render (what ``prb`` does for a texture's padded copy, :func:`~.prb.push_tangents`), the boundary
+term lost most of its derivative (the Jacobian of a translation projected on finite differences:
+0.15 and of a rotation 0.07, ``tests/unit/test_geometry.py``, against about 1 carried by the
+render).
+
 The interface is :class:`~services.solver.estimators.methods.prb.Prb`'s, and so is the Jacobian:
 forward-mode renders, one per group of scalars that change distinct RGB channels (a pose's
 scalars change every channel: one render each). The renders are traced at every call (not
@@ -45,6 +52,7 @@ class PrbProjective(Prb):
 
     name = Method.PRB_PROJECTIVE
     integrator_type = "prb_projective"
+    pushes_tangents = False
     geometry_refusal: ClassVar[str | None] = None
 
     def __init__(self, *, depth: PathDepth, radiance: bool = False, differential: bool = False, freeze: bool = False):
