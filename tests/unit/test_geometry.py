@@ -168,20 +168,21 @@ def test_the_pose_gradient_matches_finite_differences(mi):
 
 @pytest.mark.slow
 def test_levenberg_marquardt_recovers_a_pose(tmp_path):
-    """The default job on ``pose-block`` at 16x16: the pose error falls to a third within 6
-    iterations (translation in scene units, rotation in degrees), and the answer is written as a
-    4x4 matrix and XML in final/poses.json and the summary."""
+    """The default job on ``pose-block`` at 16x16 (``auto``: ``prb_projective``, Levenberg-Marquardt
+    on a forward-mode Jacobian): within 5 iterations the pose error is at least halved, in
+    translation (Euclidean, from 0.05) and in rotation (degrees, from 10), and the answer is
+    written as a 4x4 matrix and XML in final/poses.json and the summary."""
     import json
 
     from tests.support.jobs import run_job
 
-    job = _spec(iterations=6, learning_rate=0.05, render={"resolution": [16, 16]},
+    job = _spec(iterations=5, render={"resolution": [16, 16]},
                 targets={"synthetic": {"values": {POSE[0]: [0.04, 0.0, -0.03], POSE[1]: [0.0, 10.0, 0.0]},
                                        "spp": 64}}, seed=1).model_dump(exclude_unset=True)
     summary = run_job(job, tmp_path)
     assert summary["status"] == "succeeded", summary.get("error")
     final, target = np.array(summary["final"]), np.array(summary["target"])
-    assert np.abs(final[:3] - target[:3]).max() < 0.04 / 3
-    assert np.abs(final[3:] - target[3:]).max() < 10.0 / 3
+    assert np.linalg.norm(final[:3] - target[:3]) < 0.05 / 2
+    assert np.abs(final[3:] - target[3:]).max() < 10.0 / 2
     poses = json.loads((tmp_path / "final" / "poses.json").read_text())
     assert poses == summary["poses"] and poses[0]["shape"] == "block"

@@ -36,7 +36,11 @@ class Problem:
     refused: dict[str, int] = field(default_factory=dict)    # steps refused, by reason (never written)
 
     def __post_init__(self):
-        self.layout = DerivativeLayout.by_component([info.size for info in self.parameters.infos])
+        layout = DerivativeLayout.by_component([info.size for info in self.parameters.infos])
+        moves = [info.owner == "geometry" for info in self.parameters.infos for _ in range(info.size)]
+        # a pose's three scalars are not RGB components: each changes every channel
+        self.layout = DerivativeLayout(layout.scalars, tuple((0, 1, 2) if moves[i] else c
+                                                             for i, c in zip(layout.scalars, layout.channels)))
 
     def apply_plan(self, plan: EffectPlan) -> None:
         """Simulate only what ``plan`` calls for."""
