@@ -121,8 +121,8 @@ def run_loop(job: dict, shape: str, seconds: float, folder: Path) -> dict:
     curve, started, it = [], time.perf_counter(), 0
     while it < 2 or time.perf_counter() - started < seconds:
         a = opt["a"] * ANGLE_SCALE
-        trafo = (mi.Transform4f().translate(mi.Vector3f(*centre) + opt["t"]).rotate([0, 0, 1], a.z)
-                 .rotate([0, 1, 0], a.y).rotate([1, 0, 0], a.x).translate(mi.Vector3f(*(-centre))))
+        trafo = (mi.Transform4f().translate(mi.Vector3f(*(float(x) for x in centre)) + opt["t"]).rotate([0, 0, 1], a.z)
+                 .rotate([0, 1, 0], a.y).rotate([1, 0, 0], a.x).translate(mi.Vector3f(*(float(-x) for x in centre))))
         params[key] = dr.ravel(trafo @ v0)
         params.update()
         losses = []
