@@ -172,15 +172,16 @@ def test_the_pose_gradient_matches_finite_differences(mi):
 
 @pytest.mark.slow
 def test_levenberg_marquardt_recovers_a_pose(tmp_path):
-    """The default job on ``pose-block`` at 16x16 (``auto``: ``prb_projective``, Levenberg-Marquardt
-    on a forward-mode Jacobian): within 5 iterations the pose error is at least halved, in
+    """The default job on ``pose-block`` at 24x24 (``auto``: ``prb_projective``, Levenberg-Marquardt
+    on a forward-mode Jacobian; at 16x16 its steps are noise-dominated, bench.geometry): within 8
+    iterations the pose error is at least halved, in
     translation (Euclidean, from 0.05) and in rotation (degrees, from 10), and the answer is
     written as a 4x4 matrix and XML in final/poses.json and the summary."""
     import json
 
     from tests.support.jobs import run_job
 
-    job = _spec(iterations=5, render={"resolution": [16, 16]},
+    job = _spec(iterations=8, render={"resolution": [24, 24]},
                 targets={"synthetic": {"values": {POSE[0]: [0.04, 0.0, -0.03], POSE[1]: [0.0, 10.0, 0.0]},
                                        "spp": 64}}, seed=1).model_dump(exclude_unset=True)
     summary = run_job(job, tmp_path)
