@@ -87,6 +87,10 @@ class IterationRecord(BaseModel):
     sanitized: dict[str, int] = Field(default_factory=dict,
                                       description="Lanes or steps whose non-finite values were zeroed or skipped, "
                                                   "by where (cumulative over the run).")
+    refused: dict[str, int] = Field(default_factory=dict,
+                                    description="Steps refused and never written, by reason: a step that would move "
+                                                "a shape to non-finite vertices or invert its triangles (cumulative "
+                                                "over the run; the iteration's parameters are kept).")
     training_steps: int = Field(0, description="Training steps of the fields in this iteration.")
     residual_radiance: float | None = Field(None, description="Mean residual norm of the radiance field L_phi over "
                                                                "the iteration's steps.")

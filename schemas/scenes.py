@@ -19,4 +19,6 @@ BUILTIN_SCENES: dict[str, str] = {
     "textured-floor": "The same box whose floor has a 16x16 albedo texture (floor-paint.reflectance.data, 768 "
                       "scalars), hidden from its 2 cameras of 32x32 that look up at the walls it lights: a texture "
                       "acting through interreflection.",
+    "pose-block": "A block (a generated mesh, 8 shared corners) on a floor under an area light, seen by 2 cameras "
+                  "of 32x32: geometry, the block's pose (block.to_world.translate, block.to_world.rotate).",
 }

@@ -197,6 +197,9 @@ class JobWriter:
                     extra = self._texture_files(f"{key}.{suffix}")
                     files.update({name if ext == "npy" else f"{name}_{ext}": path for ext, path in extra.items()
                                   if ext != "png" or suffix != "target"})
+        if data.get("poses"):   # a pose job's answer: final/poses.json, as a 4x4 matrix and the XML to paste back
+            summary["poses"] = data["poses"]
+            self._put(self.files.key("final/poses.json"), _json(data["poses"]), durable=True)
         if summary["final"] is not None and summary["target"] is not None and summary["final"]:
             summary["max_abs_error"] = float(np.max(np.abs(np.asarray(summary["final"]) - np.asarray(summary["target"]))))
         self.guard()

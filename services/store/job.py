@@ -14,6 +14,8 @@
       iterations/<k>/textures/<key>.npy|.png  a texture parameter (H, W, C) and <key>.dz_dp its gradient, with
                                     the images (texture jobs write no gradient-<p>.png)
       final/<key>.npy|.png          a recovered texture parameter, float32 (H, W, C), at the end
+      final/poses.json              a pose job's recovered poses: per shape, the 4x4 matrix and the XML
+                                    <transform> to paste back
       checkpoints/latest.pt         everything needed to continue (services.solver.optimize.checkpoint)
       checkpoints/latest.json       {"next_iteration": k} of that checkpoint
       summary.json                  final status, parameters, iterations, seconds

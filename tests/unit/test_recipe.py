@@ -72,7 +72,7 @@ def effects_from_bounces(monkeypatch):
 
 
 def choose(spec: JobSpec, sizes, sensors: int, measures: Measures | None = None) -> Recipe:
-    parameters = SimpleNamespace(has_textures=False, n=sum(sizes), sizes=list(sizes))
+    parameters = SimpleNamespace(has_textures=False, has_geometry=False, n=sum(sizes), sizes=list(sizes))
     return resolve(spec, parameters, sensors, measures or Measures())
 
 

@@ -242,7 +242,8 @@ def test_auto_gives_a_texture_job_every_view_and_16_spp_unless_set():
 
     from services.solver.optimize.resolve import TEXTURE_SPP, resolve
 
-    parameters = SimpleNamespace(has_textures=True, n=48, sizes=[48], textures=[("wall.reflectance.data", (4, 4, 3))])
+    parameters = SimpleNamespace(has_textures=True, has_geometry=False, n=48, sizes=[48],
+                                 textures=[("wall.reflectance.data", (4, 4, 3))])
     measures = SimpleNamespace(closure=lambda: None, direct=lambda: [False] * 48,   # never asked for a texture
                                footprint=lambda key, shape: np.full(shape[:2], 10))
 
@@ -267,7 +268,7 @@ def test_a_texture_whose_pixels_cannot_pin_its_texels_moves_in_blocks_matched_to
 
     from services.solver.optimize.resolve import PIXELS_PER_TEXEL, resolve
 
-    parameters = SimpleNamespace(has_textures=True, n=64 * 64 * 3, sizes=[64 * 64 * 3],
+    parameters = SimpleNamespace(has_textures=True, has_geometry=False, n=64 * 64 * 3, sizes=[64 * 64 * 3],
                                  textures=[("wall.reflectance.data", (64, 64, 3))])
     counts = np.zeros((64, 64), int)
     counts[::2, ::2] = 3           # 0.75 pixels per texel; 4 x 4 blocks see 12 each, 2 x 2 blocks 3

@@ -33,9 +33,14 @@ class Problem:
     attach_emission: bool = True
     effects: Effects | None = None
     sanitized: dict[str, int] = field(default_factory=dict)
+    refused: dict[str, int] = field(default_factory=dict)    # steps refused, by reason (never written)
 
     def __post_init__(self):
-        self.layout = DerivativeLayout.by_component([info.size for info in self.parameters.infos])
+        layout = DerivativeLayout.by_component([info.size for info in self.parameters.infos])
+        moves = [info.owner == "geometry" for info in self.parameters.infos for _ in range(info.size)]
+        # a pose's three scalars are not RGB components: each changes every channel
+        self.layout = DerivativeLayout(layout.scalars, tuple((0, 1, 2) if moves[i] else c
+                                                             for i, c in zip(layout.scalars, layout.channels)))
 
     def simulate(self, effects: Effects) -> None:
         """Simulate only what ``effects`` call for."""
@@ -54,6 +59,10 @@ class Problem:
     def bbox(self) -> tuple[np.ndarray, np.ndarray]:
         box = self.scene.scene.bbox()
         return np.array(box.min, dtype=np.float32), np.array(box.max, dtype=np.float32)
+
+    def count_refused(self, reason: str) -> None:
+        """Record a step that was refused (a shape's non-finite vertices, inverted triangles)."""
+        self.refused[reason] = self.refused.get(reason, 0) + 1
 
     def count_sanitized(self, where: str, count: int) -> None:
         """Record lanes whose non-finite values were zeroed, so hiding a problem stays visible."""

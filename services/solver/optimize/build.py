@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from services.solver.estimators.methods import GradientMethod, make_method
 from services.solver.estimators.methods.prb import Prb, channel_groups
 from services.solver.fields.field import NeuralField
@@ -73,6 +75,8 @@ def build(prepared: Prepared, recipe: Recipe) -> Built:
                                damping=steps.damping, trust_growth=steps.trust_growth, trust_start=steps.trust_start,
                                curvature=steps.curvature, curvature_every=steps.curvature_every,
                                views=len(prepared.targets))
+    if recipe.step_units:
+        optimizer.units = np.asarray(recipe.step_units, np.float64)
     return Built(method, trainer, jacobian_method, optimizer)
 
 

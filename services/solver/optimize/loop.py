@@ -47,6 +47,7 @@ from services.solver.optimize.setup import Prepared, prepare
 from services.solver.optimize.state import RunState, describe, initial_state, restore, save
 from services.solver.optimize.textures import TextureReport, record_fields
 from services.solver.optimize.views import ViewStream
+from services.solver.scene.params import ParameterSet
 from services.solver.seeds import derive_seed
 from services.solver.training.trainer import FieldTrainer, fields_of
 
@@ -123,6 +124,7 @@ class InverseRenderingRun:
         self.method_name = str(spec.method)  # the method that runs: an auto job's choice once resolved
         self.listed: TextureReport | None = None  # which scalars reports list (textures are summarised)
         self.seconds: dict = {}                   # preparing and deciding (plan.json's prepared_seconds)
+        self.parameter_set: ParameterSet | None = None   # the job's parameters once prepared (their poses)
 
     def execute(self) -> RunOutcome:
         """Run to the end, to a cancel or to an interruption. A job that fails returns a failed
@@ -144,6 +146,7 @@ class InverseRenderingRun:
             prepared, measures = prepare(self.spec, scene_file=self.scene_file,
                                          on_phase=lambda what: self.reporter.progress("preparing", {"what": what}))
             self.listed = prepared.textures
+            self.parameter_set = prepared.problem.parameters
             recipe = resolve(self.spec, prepared.problem.parameters, len(prepared.targets), measures)
             self.seconds = {**prepared.seconds, "resolve": sum(measures.seconds.values())}
             self.method_name = recipe.method
@@ -232,6 +235,12 @@ class InverseRenderingRun:
                                self.spec.iterations, dict(recipe.texture_blocks))
         updated = built.optimizer.step(state.parameters, gradient, prepared.lower, prepared.upper, lr=lr,
                                        jacobians=estimate.jacobians)
+        refusal = prepared.problem.parameters.refuse(state.parameters, updated)
+        if refusal is not None:   # a shape's non-finite vertices or inverted triangles: never written
+            log.warning("iteration %d: step refused (%s)", k, refusal)
+            prepared.problem.count_refused(refusal)
+            built.optimizer.refused()
+            updated = np.array(state.parameters, np.float64)
         answer = self._answer(k, prepared, recipe, built, state, estimate)
         clock.lap("step")
         grown = state.batch.grow(recipe.batch, len(prepared.targets), k) if built.optimizer.noise_dominated() else None
@@ -311,6 +320,7 @@ class InverseRenderingRun:
             iteration=k, loss=estimate.loss,
             **record_fields(prepared.textures, state.parameters, updated, estimate.dz_dp, target),
             learning_rate=lr, images=images, sanitized=dict(prepared.problem.sanitized),
+            refused=dict(prepared.problem.refused),
             views=list(estimate.candidates),
             optimizer=built.optimizer.describe() or None,
             seconds={phase: clock.seconds.get(phase, 0.0) for phase in ("training", "gradient", "step", "images")},
@@ -346,4 +356,7 @@ class InverseRenderingRun:
                                 "floor_error": None if answer.floor_error is None else listed(answer.floor_error)}
         if self._stopped(state):
             outcome.stopped = asdict(state.events[-1])
+        if self.parameter_set is not None and self.parameter_set.has_geometry:
+            answer_values = state.answer.estimate().values if state.next_iteration > 0 else state.parameters
+            outcome.poses = self.parameter_set.pose_reports(answer_values)
         return outcome

@@ -126,6 +126,9 @@ class Recipe:
     texture_blocks: tuple[tuple[str, int], ...] = ()   # each texture's block side (1: its own resolution)
     radiance: bool = False       # whether the run trains L_phi
     differential: bool = False   # whether the run trains dL_theta
+    #: per scalar, one unit of the optimizer's steps in the scalar's own units (empty: all 1;
+    #: a rotation's, :meth:`services.solver.scene.params.ParameterSet.step_units`)
+    step_units: tuple[float, ...] = ()
 
     def to_json(self) -> dict:
         return {"method": self.method, "optimizer": self.steps.optimizer, "jacobian": self.jacobian,
@@ -136,4 +139,5 @@ class Recipe:
                 "curvature": self.steps.curvature if self.steps.second_order else None,
                 "stop": asdict(self.stop), "texture_blocks": dict(self.texture_blocks),
                 "fields": {"radiance": self.radiance, "differential": self.differential},
+                "step_units": list(self.step_units) or None,
                 "decisions": [asdict(d) for d in self.decisions], "warnings": list(self.warnings)}

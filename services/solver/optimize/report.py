@@ -76,3 +76,4 @@ class RunOutcome:
     last_iterate: list[float] | None = None      # the parameters of the last step, not averaged
     estimate: dict | None = None                 # how the answer was formed: kind, window
     stopped: dict | None = None                  # why the run stopped: the decision, with its reason
+    poses: list[dict] | None = None              # each posed shape's answer: 4x4 matrix and XML <transform>

@@ -29,6 +29,15 @@ samples per pixel). The rules and what they rest on (``bench/results/``):
   the noisy tail of longer paths.
 * **A texture** (``bench/results/textures*.md``): Adam (a Gauss-Newton step would need a P x P
   curvature), every view at :data:`TEXTURE_SPP` spp per iteration.
+* **Geometry** (a pose, :mod:`services.solver.scene.geometry`): only Mitsuba's projective
+  integrators differentiate a moving silhouette; every other method refuses it with the reason.
+  ``auto`` takes ``direct_projective`` where direct light is all but :data:`MISSING_ENERGY` of the
+  image (measured, :func:`~services.solver.estimators.render.missing_energy`), else
+  ``prb_projective``; Levenberg-Marquardt while its Jacobian costs at most
+  :data:`MAX_GEOMETRY_RENDERS` forward renders per view (one per pose scalar), every view at
+  :data:`GEOMETRY_SPP` spp per iteration (the boundary term at 1 spp is noise; Mitsuba's pose
+  tutorial renders 16), and steps measured in the shape's size (:meth:`ParameterSet.step_units
+  <services.solver.scene.params.ParameterSet.step_units>`: a degree is not a scene unit).
 """
 
 from __future__ import annotations
@@ -73,6 +82,15 @@ OPEN_START, CLOSED_START = 4.0, 1.0
 TEXTURE_SPP = 16
 #: Samples per pixel of ``prb``'s first batch when no optimized scalar is seen directly.
 INDIRECT_SPP = 8
+#: Samples per pixel of a geometry job whose job leaves them unset (Mitsuba's pose tutorial's).
+GEOMETRY_SPP = 16
+#: ``auto`` takes Levenberg-Marquardt on geometry while its Jacobian costs at most this many forward
+#: renders per view (two shapes' poses).
+MAX_GEOMETRY_RENDERS = 12
+#: The path depth of direct illumination (emitters seen and one bounce), what ``direct_projective`` renders.
+DIRECT_DEPTH = PathDepth(2, None)
+#: The methods whose paths are Mitsuba's (forward-mode Jacobian renders, one per channel group).
+PATH_METHODS = (Method.PRB, Method.PRB_PROJECTIVE, Method.DIRECT_PROJECTIVE)
 
 
 class Measures(Protocol):
@@ -104,6 +122,16 @@ class Parameters(Protocol):
     def has_textures(self) -> bool: ...
 
     @property
+    def has_geometry(self) -> bool: ...
+
+    @property
+    def geometry(self) -> list[bool]:
+        """Per scalar: whether it moves a shape."""
+
+    def step_units(self) -> np.ndarray:
+        """Per scalar: one unit of the optimizer's steps, in the scalar's own units."""
+
+    @property
     def sizes(self) -> list[int]: ...
 
     @property
@@ -133,11 +161,14 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
     def decide(what: str, value, reason: str) -> None:
         decisions.append(Decision(what, value, reason))
 
-    method = str(Method.PRB) if spec.method == AUTO else str(spec.method)
-    if spec.method == AUTO:
-        decide("method", method, "prb: an unbiased gradient for one adjoint render per view, whatever the number of "
-                                 "scalars; no field to train before the first step")
     depth = PathDepth(spec.render.max_depth, spec.render.rr_depth)
+    if parameters.has_geometry:
+        method = _geometry_method(spec, measures, decide)
+    else:
+        method = str(Method.PRB) if spec.method == AUTO else str(spec.method)
+        if spec.method == AUTO:
+            decide("method", method, "prb: an unbiased gradient for one adjoint render per view, whatever the number "
+                                     "of scalars; no field to train before the first step")
     decide("depth", depth.describe(),
            "the job's render.max_depth / rr_depth" if spec.render.max_depth or spec.render.rr_depth != 5
            else "Mitsuba's default: every bounce, so photographs and candidates agree (no depth bias)")
@@ -148,13 +179,19 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
             warnings.append(f"render.max_depth {depth.max_depth} misses {missing:.1%} of the image's light at the "
                             f"initial values (more where materials are brighter): the recovered parameters are "
                             f"biased; leave render.max_depth unset for unbounded paths with Russian roulette")
-    planned_for = fields_method(spec)
+    planned_for = fields_method(spec) if not parameters.has_geometry else None
     effects = None
     if planned_for is not None:
         effects = choose_effects(measures.facts(), planned_for, method_class(planned_for).uses, spec.effects,
                                spec.training.delta_depth)
         warnings += effects.warnings
     layout = _layout(parameters, effects, spec.effects.merge_channels)
+    units = tuple(float(u) for u in parameters.step_units()) if parameters.has_geometry else ()
+    if any(u != 1.0 for u in units):
+        decide("step_units", ", ".join(f"{u:.4g}" for u in sorted(set(units))),
+               "a pose's steps are measured in its shape's size: a translation in the shape's radius, a rotation in "
+               "radians (which move its farthest vertex by one radius), so that the learning rate and the trust "
+               "region mean the same share of the shape for both (degrees are not scene units)")
     optimizer = _optimizer(spec, method, parameters, layout, decide)
     growth, start = CLOSED_GROWTH, CLOSED_START
     if optimizer == "levenberg-marquardt":
@@ -169,7 +206,37 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
     radiance, differential = _fields(spec, method, planned_for, effects, depth)
     return Recipe(method=method, jacobian=spec.jacobian, fields_for=planned_for, depth=depth, effects=effects,
                   layout=layout, steps=steps, batch=batch, stop=stop, decisions=tuple(decisions),
-                  warnings=tuple(warnings), texture_blocks=blocks, radiance=radiance, differential=differential)
+                  warnings=tuple(warnings), texture_blocks=blocks, radiance=radiance, differential=differential,
+                  step_units=units)
+
+
+def _geometry_method(spec: JobSpec, measures: Measures, decide) -> str:
+    """The method of a job that moves a shape: the job's, when it can differentiate a moving
+    silhouette (else :class:`InvalidJob` with the reason), or ``auto``'s projective integrator."""
+    if spec.method != AUTO:
+        refusal = method_class(str(spec.method)).geometry_refusal
+        if refusal is not None:
+            raise InvalidJob("method", f"{spec.method} cannot optimize geometry (a shape's pose): {refusal}; use "
+                                       f"prb_projective or direct_projective (or method auto)")
+        if spec.jacobian == "differential-field":
+            raise InvalidJob("jacobian", "jacobian 'differential-field' is dL_theta's, which has no boundary term "
+                                         "for moving silhouettes: geometry takes the method's own Jacobian")
+        return str(spec.method)
+    if spec.jacobian == "differential-field":
+        raise InvalidJob("jacobian", "jacobian 'differential-field' is dL_theta's, which has no boundary term for "
+                                     "moving silhouettes: geometry takes the method's own Jacobian")
+    missing = measures.missing_energy(DIRECT_DEPTH)
+    share = f"paths longer than direct illumination carry {missing:.2%} of the image's light"
+    if missing <= MISSING_ENERGY:
+        decide("method", str(Method.DIRECT_PROJECTIVE),
+               f"geometry (a shape's pose) needs the boundary term of moving silhouettes, which Mitsuba's projective "
+               f"integrators sample; {share} (at most {MISSING_ENERGY:.1%}): direct illumination is the image")
+        return str(Method.DIRECT_PROJECTIVE)
+    decide("method", str(Method.PRB_PROJECTIVE),
+           f"geometry (a shape's pose) needs the boundary term of moving silhouettes, which Mitsuba's projective "
+           f"integrators sample; {share} (more than {MISSING_ENERGY:.1%}): every bounce, or the candidates would "
+           f"miss light the targets have")
+    return str(Method.PRB_PROJECTIVE)
 
 
 def _fields(spec: JobSpec, method: str, planned_for: str | None, effects: Effects | None,
@@ -255,7 +322,12 @@ def _layout(parameters: Parameters, effects: Effects | None, merge_channels: boo
         return DerivativeLayout(tuple(i for i, _ in active), tuple(channels for _, channels in active))
     if not merge_channels:
         return DerivativeLayout.full(parameters.n)
-    return DerivativeLayout.by_component(list(parameters.sizes))
+    layout = DerivativeLayout.by_component(list(parameters.sizes))
+    if parameters.has_geometry:   # a pose's three scalars are not RGB components: each changes every channel
+        moves = parameters.geometry
+        layout = DerivativeLayout(layout.scalars, tuple((0, 1, 2) if moves[i] else c
+                                                        for i, c in zip(layout.scalars, layout.channels)))
+    return layout
 
 
 def jacobian_renders(layout: DerivativeLayout) -> int:
@@ -277,10 +349,17 @@ def _optimizer(spec: JobSpec, method: str, parameters: Parameters, layout: Deriv
         decide("optimizer", "adam", f"a texture's {parameters.n} scalars: a Gauss-Newton step would solve with a "
                                     f"P x P curvature (services.solver.optimize.carry)")
     else:
-        renders = jacobian_renders(layout) if method == Method.PRB and spec.jacobian == "method" else 0
-        if renders > MAX_JACOBIAN_RENDERS:
+        renders = jacobian_renders(layout) if method in PATH_METHODS and spec.jacobian == "method" else 0
+        cap = MAX_GEOMETRY_RENDERS if parameters.has_geometry else MAX_JACOBIAN_RENDERS
+        if parameters.has_geometry and renders <= cap:
+            decide("optimizer", "levenberg-marquardt",
+                   f"geometry: {renders} forward render(s) per view measure the Jacobian (one per pose scalar, at "
+                   f"most {cap}); a pose is a handful of scalars whose image responds smoothly away from the "
+                   f"silhouettes, where Gauss-Newton steps in a trust region tell good steps from bad ones")
+            return "levenberg-marquardt"
+        if renders > cap:
             decide("optimizer", "adam", f"the Jacobian would cost {renders} forward renders per view (more than "
-                                        f"{MAX_JACOBIAN_RENDERS}): Adam on the adjoint gradient")
+                                        f"{cap}): Adam on the adjoint gradient")
             return "adam"
         cost = (f"{renders} forward render(s) per view measure the Jacobian ({layout.active} scalars in {renders} "
                 f"channel group(s))" if renders else "the Jacobian is a field query")
@@ -318,6 +397,16 @@ def _batch(spec: JobSpec, method: str, optimizer: str, parameters: Parameters, e
     unset = not {"spp", "gradient_spp"} & render.model_fields_set
     views = 1 if auto_views else min(int(spec.views_per_iteration), sensors)
     spp, gradient_spp, grows = render.spp, render.gradient_spp, False
+    if parameters.has_geometry and auto_views:
+        views = sensors
+        decide("views", sensors, "geometry: every view per iteration (a silhouette seen from one side leaves the "
+                                 "pose's other directions free, and the boundary term is noisy)")
+        if unset:
+            spp = gradient_spp = GEOMETRY_SPP
+            decide("spp", GEOMETRY_SPP, f"geometry: {GEOMETRY_SPP} samples per pixel (the boundary term of a "
+                                        f"silhouette at 1 sample per pixel is noise; render.spp and gradient_spp "
+                                        f"left unset)")
+        return BatchRule(views, spp, gradient_spp, grows=optimizer != "adam", max_growth=MAX_GROWTH)
     if parameters.has_textures and auto_views:
         views = sensors
         decide("views", sensors, "a texture: every view per iteration (each texel is seen by few pixels; one view at "

@@ -121,7 +121,7 @@ class SceneMeasures:
 
     def missing_energy(self, depth: PathDepth) -> float:
         problem = self.prepared.problem
-        return self._measure("missing_energy", lambda: missing_energy(
+        return self._measure(f"missing_energy {depth.describe()}", lambda: missing_energy(
             problem, depth, seed=derive_seed(self.prepared.spec.seed, "depth")))
 
 
@@ -158,13 +158,16 @@ def _broadcast(value, size: int, field: str, channels: int | None = None) -> np.
 
 def _bounds(key: str, kind: str, bounds) -> tuple[float, float]:
     """Projection bounds: the job's, else [MIN_ROUGHNESS, 1] for a roughness, [0, 1] for other BSDF
-    parameters and [0, +inf) for emitters. A roughness is never allowed below MIN_ROUGHNESS."""
+    parameters, [0, +inf) for emitters and none for a pose. A roughness is never allowed below
+    MIN_ROUGHNESS."""
     roughness = key.rsplit(".", 2)[-2] in ("alpha", "alpha_u", "alpha_v", "roughness") if "." in key else False
     if bounds is not None:
         lower, upper = float(bounds[0]), float(bounds[1])
         return (max(lower, MIN_ROUGHNESS), max(upper, MIN_ROUGHNESS)) if roughness else (lower, upper)
     if roughness:
         return MIN_ROUGHNESS, 1.0
+    if kind == "geometry":
+        return -float("inf"), float("inf")
     return (0.0, 1.0) if kind == "bsdf" else (0.0, float("inf"))
 
 

@@ -22,6 +22,8 @@ declared at the top level and referenced by the shapes, so parameter keys read a
 ``textured-floor``  The same box whose floor has a 16 x 16 albedo texture
                     (``floor-paint.reflectance.data``), hidden from its 2 cameras: the texture
                     acts through the light it reflects onto the walls (:mod:`.textured`).
+``pose-block``      A generated block on a floor under an area light, 2 cameras: its pose is a
+                    geometry parameter (:mod:`.posed`).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from collections.abc import Callable
 
 from schemas.scenes import BUILTIN_SCENES
 from services.solver.backend import use_mitsuba
+from services.solver.scene.posed import pose_block_builtin
 from services.solver.scene.textured import textured_box_builtin, textured_floor_builtin
 
 
@@ -171,6 +174,7 @@ FACTORIES: dict[str, Callable[[], dict]] = {
     "room-open-8": room_open_8,
     "textured-box": textured_box_builtin,
     "textured-floor": textured_floor_builtin,
+    "pose-block": pose_block_builtin,
 }
 if set(FACTORIES) != set(BUILTIN_SCENES):  # the catalogue and the factories must name the same scenes
     raise ImportError(f"built-in scenes differ: {sorted(set(FACTORIES) ^ set(BUILTIN_SCENES))}")

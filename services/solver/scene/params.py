@@ -6,12 +6,13 @@ and writes them as one flat vector, and computes forward-mode derivatives of any
 expression with respect to each scalar: that is how ``∂_p f`` and ``∂_p E`` of Eq. 4 are obtained
 from ``bsdf.eval`` / ``emitter.eval`` without a hand-written formula per BSDF.
 
-Only material and emitter properties are accepted, and not those of purely ideal-specular BSDFs
+Material and emitter properties are accepted, and not those of purely ideal-specular BSDFs
 (a mirror's reflectance, a glass's IOR): rays are continued through such surfaces by detached
-sampling, as in Mitsuba's ``prb``, so no derivative would reach them. Geometry (vertex positions, transforms) would
-need projective sampling of visibility discontinuities, which neither the paper's method nor
-Mitsuba's ``prb`` reference provides: selecting such a key is a loud error, not a silently wrong
-gradient.
+sampling, as in Mitsuba's ``prb``, so no derivative would reach them. A mesh's pose
+(``<shape id>.to_world.translate`` / ``.rotate``, :mod:`.geometry`) is a *geometry* parameter: not
+a traverse key, its scalars move the mesh's ``vertex_positions``, and only the methods that sample
+the moving silhouettes (Mitsuba's projective integrators) differentiate it; every other method
+refuses it (``services.solver.optimize.resolve``).
 """
 
 from __future__ import annotations
@@ -25,7 +26,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-Owner = Literal["bsdf", "emitter"]
+from services.solver.scene.geometry import POSE_KEYS, ShapePose, mesh_shapes, refusal, split_key
+
+Owner = Literal["bsdf", "emitter", "geometry"]
 
 #: Scalars (or units, :meth:`ParameterSet.units`) per forward-mode traversal of one AD graph.
 #: Dr.Jit 1.5 crashes (a segmentation fault in ``dr.traverse``) on the fourth forward traversal of
@@ -137,7 +140,19 @@ class ParameterSet:
         if len(set(keys)) != len(keys):
             raise ValueError(f"parameter keys must be unique, got {list(keys)}")
         allowed = {info.key: info for info in differentiable_parameters(params)}
+        meshes = set(mesh_shapes(params))
+        #: the meshes whose pose is optimized, by shape id (:mod:`.geometry`)
+        self.poses: dict[str, ShapePose] = {}
         for key in keys:
+            geometry = split_key(key)
+            if geometry is not None and geometry[0] in meshes:
+                shape, kind = geometry
+                if shape not in self.poses:
+                    self.poses[shape] = ShapePose.of(params, shape)
+                allowed[key] = ParameterInfo(key, POSE_KEYS[kind], "geometry", "Mesh", (0.0,) * POSE_KEYS[kind])
+            elif geometry is not None:
+                raise ValueError(f"parameter {key!r}: {geometry[0]!r} is not a mesh of this scene (a pose moves a "
+                                 f"mesh's vertex_positions); meshes: {', '.join(sorted(meshes)) or 'none'}")
             if key not in allowed:
                 known = key in params.keys()  # noqa: SIM118 (SceneParameters is not a dict)
                 reason = "is a key, but not a differentiable material or emitter parameter" if known else (
@@ -151,7 +166,7 @@ class ParameterSet:
         #: the variables :meth:`tracking` enabled gradients on, by key (None outside it)
         self._leaves: dict[str, object] | None = None
         self.infos = [allowed[k] for k in self.keys]
-        self.owners = {k: _owner(params, k)[1] for k in self.keys}
+        self.owners = {k: _owner(params, k)[1] for k in self.keys if k not in self._geometry_keys()}
         self.n = sum(info.size for info in self.infos)
         self._scalars: list[Scalar] | None = None
 
@@ -178,6 +193,35 @@ class ParameterSet:
         return any(info.texture for info in self.infos)
 
     @property
+    def has_geometry(self) -> bool:
+        """Whether a scalar moves a shape (a pose)."""
+        return bool(self.poses)
+
+    def _geometry_keys(self) -> set[str]:
+        return {key for key in self.keys if (split := split_key(key)) is not None and split[0] in self.poses}
+
+    @property
+    def geometry(self) -> list[bool]:
+        """Per scalar: whether it moves a shape."""
+        return [info.owner == "geometry" for info in self.infos for _ in range(info.size)]
+
+    def step_units(self) -> np.ndarray:
+        """Per scalar, ``(n,)``: the size of one unit of the optimizer's steps in the scalar's own
+        units. 1 but for a pose, whose steps are measured in the size of its shape: a translation
+        in the shape's radius ``r`` about its centre (scene units), a rotation in radians
+        (``180 / pi`` degrees, which move the farthest vertex by ``r``): a learning rate then means
+        the same share of the shape for both, and for a bunny as for a building."""
+        out: list[float] = []
+        for key, info in zip(self.keys, self.infos):
+            geometry = split_key(key) if info.owner == "geometry" else None
+            unit = 1.0
+            if geometry is not None:
+                radius = self.poses[geometry[0]].radius or 1.0
+                unit = radius if geometry[1] == "to_world.translate" else 180.0 / np.pi
+            out += [unit] * info.size
+        return np.asarray(out, np.float64)
+
+    @property
     def labels(self) -> list[str]:
         return [s.label for s in self.scalars]
 
@@ -188,7 +232,60 @@ class ParameterSet:
 
     def values(self) -> np.ndarray:
         """The current scalars as one float64 vector of shape ``(n,)``."""
-        return np.concatenate([_as_numpy(self.params[k]) for k in self.keys])
+        return np.concatenate([_as_numpy(self._get(k)) for k in self.keys])
+
+    def _get(self, key: str):
+        """The Dr.Jit value of ``key``: a traverse key's, or a pose's own (:mod:`.geometry`)."""
+        geometry = split_key(key)
+        if geometry is not None and geometry[0] in self.poses:
+            return self.poses[geometry[0]].values[geometry[1]]
+        return self.params[key]
+
+    def _set(self, key: str, value) -> None:
+        geometry = split_key(key)
+        if geometry is not None and geometry[0] in self.poses:
+            self.poses[geometry[0]].values[geometry[1]] = value
+        else:
+            self.params[key] = value
+
+    def _update(self) -> None:
+        """Move the posed meshes to their poses' values, then let Mitsuba update the scene."""
+        for pose in self.poses.values():
+            pose.write(self.params)
+        self.params.update()
+
+    def variable(self, key: str):
+        """The variable forward mode seeds for ``key``: inside :meth:`tracking` its leaf."""
+        return self._leaves[key] if self._leaves is not None else self._get(key)
+
+    def poses_of(self, values: np.ndarray) -> dict[str, dict[str, np.ndarray]]:
+        """``{shape: {kind: (3,)}}`` of the poses in the flat vector ``values``."""
+        out: dict[str, dict[str, np.ndarray]] = {shape: {kind: np.zeros(3) for kind in POSE_KEYS}
+                                                 for shape in self.poses}
+        offset = 0
+        for key, info in zip(self.keys, self.infos):
+            geometry = split_key(key) if info.owner == "geometry" else None
+            if geometry is not None:
+                out[geometry[0]][geometry[1]] = np.asarray(values[offset:offset + info.size], np.float64)
+            offset += info.size
+        return out
+
+    def refuse(self, before: np.ndarray, after: np.ndarray) -> str | None:
+        """Why the step from ``before`` to ``after`` (flat vectors) may not be written: non-finite
+        vertices or inverted triangles of a posed mesh (:func:`.geometry.refusal`); None when it may."""
+        if not self.poses:
+            return None
+        old, new = self.poses_of(before), self.poses_of(after)
+        for shape, pose in self.poses.items():
+            why = refusal(pose.vertices(**_kw(old[shape])), pose.vertices(**_kw(new[shape])), pose.faces)
+            if why is not None:
+                return f"{shape}: {why}"
+        return None
+
+    def pose_reports(self, values: np.ndarray) -> list[dict]:
+        """Each posed mesh's pose in ``values``: its 4x4 matrix and XML (:meth:`.ShapePose.report`)."""
+        poses = self.poses_of(values)
+        return [pose.report(**_kw(poses[shape])) for shape, pose in self.poses.items()]
 
     def assign(self, values: np.ndarray) -> None:
         """Write the flat vector ``values`` (shape ``(n,)``) into the scene."""
@@ -202,9 +299,9 @@ class ParameterSet:
                              f"index {int(bad[0])}: {values[bad[0]]})")
         offset = 0
         for key, info in zip(self.keys, self.infos):
-            self.params[key] = _like(self.params[key], values[offset:offset + info.size])
+            self._set(key, _like(self._get(key), values[offset:offset + info.size]))
             offset += info.size
-        self.params.update()
+        self._update()
 
     def split(self, flat: np.ndarray) -> dict[str, list[float]]:
         """``{key: [scalars]}`` view of a flat vector (for reports)."""
@@ -228,20 +325,20 @@ class ParameterSet:
         field in place left the copy without an edge to it, and ``dz/dp`` came out zero."""
         leaves = {}
         for key in self.keys:
-            value = self.params[key]
+            value = self._get(key)
             leaf = type(value)(value)       # a new variable over the same values (no copy of the data)
             dr.enable_grad(leaf)
-            self.params[key] = leaf
+            self._set(key, leaf)
             leaves[key] = leaf
-        self.params.update()
+        self._update()
         self._leaves = leaves
         try:
             yield
         finally:
             self._leaves = None
             for key, leaf in leaves.items():
-                self.params[key] = dr.detach(leaf)
-            self.params.update()
+                self._set(key, dr.detach(leaf))
+            self._update()
 
     def gradients(self) -> list:
         """``dz/dp`` of each key (value-shaped Dr.Jit arrays) left by a backward pass inside
@@ -262,7 +359,7 @@ class ParameterSet:
     def tangent(self, index: int) -> tuple[str, object]:
         """The one-hot tangent selecting scalar ``index``: ``(key, value-shaped array)``."""
         scalar = self.scalars[index]
-        template = self.params[scalar.key]
+        template = self._get(scalar.key)
         onehot = np.zeros(_as_numpy(template).size)
         onehot[scalar.component] = 1.0
         return scalar.key, _like(template, onehot)
@@ -277,7 +374,7 @@ class ParameterSet:
             part = selected[offset:offset + info.size]
             offset += info.size
             if part.any():
-                out[key] = _like(self.params[key], part)
+                out[key] = _like(self._get(key), part)
         return out
 
     def units(self) -> list[list[int]]:
@@ -300,8 +397,8 @@ class ParameterSet:
         for position, unit in enumerate(units):
             tangents = self.tangents(unit)
             for key, tangent in tangents.items():
-                dr.set_grad(self.params[key], tangent)
-            dr.enqueue(dr.ADMode.Forward, *[self.params[key] for key in tangents])
+                dr.set_grad(self.variable(key), tangent)
+            dr.enqueue(dr.ADMode.Forward, *[self.variable(key) for key in tangents])
             dr.traverse(dr.ADMode.Forward, flags=keep if position + 1 < len(units) else dr.ADFlag.Default)
             row = [dr.grad(o) for o in outputs]
             dr.eval(row)
@@ -309,7 +406,7 @@ class ParameterSet:
             for o in outputs:
                 dr.clear_grad(o)
             for key in tangents:
-                dr.clear_grad(self.params[key])
+                dr.clear_grad(self.variable(key))
         return grads
 
     def forward(self, outputs: Sequence, scalars: Sequence[int] | None = None) -> list[list]:
@@ -321,3 +418,8 @@ class ParameterSet:
         """
         order = list(range(self.n)) if scalars is None else list(scalars)
         return self.forward_units(outputs, [[i] for i in order])
+
+
+def _kw(pose: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """A pose's values as :meth:`.ShapePose.vertices` takes them."""
+    return {"translate": pose["to_world.translate"], "rotate": pose["to_world.rotate"]}

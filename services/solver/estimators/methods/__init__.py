@@ -13,12 +13,14 @@ from schemas.methods import Method
 from services.solver.estimators.methods.base import Fields, GradientMethod, contract
 from services.solver.estimators.methods.camera_hit import Direct, NdrfLhs, NdrfRhs, OneBounce, RadianceCache
 from services.solver.estimators.methods.prb import Prb
+from services.solver.estimators.methods.projective import DirectProjective, PrbProjective
 
 if TYPE_CHECKING:
     from services.solver.estimators.render import PathDepth
     from services.solver.scene.effects import Effects
 
-METHODS: dict[Method, type[GradientMethod]] = {cls.name: cls for cls in (NdrfLhs, NdrfRhs, RadianceCache, Direct, Prb)}
+METHODS: dict[Method, type[GradientMethod]] = {cls.name: cls for cls in (NdrfLhs, NdrfRhs, RadianceCache, Direct, Prb,
+                                                                             PrbProjective, DirectProjective)}
 
 _missing = set(Method) - set(METHODS)
 if _missing:  # a public name without an implementation is a programming error: fail at import

@@ -62,6 +62,10 @@ class GradientMethod(ABC):
 
     name: ClassVar[Method]
     uses: ClassVar[frozenset[str]] = frozenset()
+    #: Why the method cannot differentiate a geometry parameter (a pose: moving silhouettes), or
+    #: None when it can (the projective integrators, :mod:`.projective`).
+    geometry_refusal: ClassVar[str | None] = (
+        "it has no boundary term for moving silhouettes: the derivative of a moving edge's visibility is lost")
 
     def __init__(self, *, radiance: bool = False, differential: bool = False):
         if radiance and RADIANCE not in self.uses or differential and DIFFERENTIAL not in self.uses:

@@ -150,6 +150,10 @@ class CameraHitMethod(GradientMethod):
     it reads ``L_r(x)`` (:meth:`reflected`). Only the active scalars of the problem's layout are
     differentiated; the others get zeros."""
 
+    geometry_refusal = ("the camera-hit estimate (and the differential field dL_theta) differentiates the shading "
+                        "at fixed hits: it has no boundary term for moving silhouettes, and the paper's scope is "
+                        "BSDF parameters")
+
     @abstractmethod
     def reflected(self, problem: Problem, fields: Fields, si: mi.SurfaceInteraction3f, where: mi.Bool,
                   sampler: mi.Sampler, primal: bool) -> AtHit | Bounce:

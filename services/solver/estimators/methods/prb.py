@@ -38,6 +38,8 @@ after, the same. Forward mode is seeded into the padded copy before the call
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -120,11 +122,18 @@ class Prb(GradientMethod):
 
     name = Method.PRB
     uses = frozenset()
+    geometry_refusal: ClassVar[str | None] = (
+        "Mitsuba's prb has no boundary term for moving silhouettes (its documentation: not for geometry); "
+        "prb_projective or direct_projective differentiate a pose")
+    #: the Mitsuba integrator's type
+    integrator_type = "prb"
+    #: whether forward mode is pushed from the parameters before the render (:func:`push_tangents`)
+    pushes_tangents = True
 
     def __init__(self, *, depth: PathDepth, radiance: bool = False, differential: bool = False, freeze: bool = True):
         super().__init__(radiance=radiance, differential=differential)
         self.depth = depth
-        self.integrator = depth.integrator("prb")
+        self.integrator = depth.integrator(self.integrator_type)
         #: whether ``candidate_and_gradient`` replays recorded kernels (module docstring)
         self.freeze = freeze
         self.fit_views(1, 1)
@@ -144,7 +153,7 @@ class Prb(GradientMethod):
     @classmethod
     def from_effects(cls, effects, depth):
         if depth is None:
-            raise ValueError("prb traces paths: it needs a PathDepth (services.solver.estimators.render)")
+            raise ValueError(f"{cls.name} traces paths: it needs a PathDepth (services.solver.estimators.render)")
         return cls(depth=depth)
 
     # ----------------------------------------------------------- Jacobian
@@ -181,11 +190,15 @@ class Prb(GradientMethod):
         step = self._frozen_tangent if self.freeze else tangent_render
         with params.tracking():  # re-creates the edges from the parameters to what derives from them
             tangents = params.tangents(scalars)
-            push_tangents(params.params, tangents)
+            if self.pushes_tangents:
+                push_tangents({key: params.variable(key) for key in tangents}, tangents)
+            else:   # seeded on the leaves only: the render's forward_to carries them (projective: below)
+                for key, tangent in tangents.items():
+                    dr.set_grad(params.variable(key), tangent)
             primal, tangent = step(problem.scene.scene, params.params, opaque_seed(seed), sensor=sensor, spp=spp,
                                    integrator=self.integrator)
             for key in tangents:
-                dr.clear_grad(params.params[key])
+                dr.clear_grad(params.variable(key))
             return np.array(primal, dtype=np.float64)[..., :3], np.array(tangent, dtype=np.float64)[..., :3]
 
     def candidate_gradient_and_images(self, problem: Problem, fields: Fields, loss: Loss, *, spp: int,

@@ -47,6 +47,8 @@ class Adam(ParameterOptimizer):
         m_hat = self.m / (1 - self.beta1 ** self.t)
         v_hat = self.v / (1 - self.beta2 ** self.t)
         step = (self.lr if lr is None else lr) * m_hat / (np.sqrt(v_hat) + self.eps)
+        if self.units is not None:
+            step = step * self.units
         return np.clip(np.asarray(p, np.float64) - step, lower, upper)
 
     def state_dict(self) -> dict:

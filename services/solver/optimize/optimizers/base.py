@@ -34,6 +34,9 @@ class ParameterOptimizer(ABC):
     name: ClassVar[str]
     needs_curvature: ClassVar[bool] = False
     curvature: Curvature | None = None
+    #: per scalar, one unit of the steps in the scalar's own units ``(P,)`` (None: all 1): Adam's
+    #: step and Levenberg-Marquardt's trust radius are measured in it (the recipe's ``step_units``)
+    units: np.ndarray | None = None
 
     def jacobians_wanted(self, k: int, views: list[int]) -> tuple[list[int], int]:
         """The views of iteration ``k``'s batch whose Jacobian the step needs, and how many
@@ -60,6 +63,11 @@ class ParameterOptimizer(ABC):
 
     def noise_dominated(self) -> bool:
         return False
+
+    def refused(self) -> None:
+        """The step just returned was refused (not written: :meth:`ParameterSet.refuse
+        <services.solver.scene.params.ParameterSet.refuse>`); a rule with a step length shortens it."""
+        return None
 
     def describe(self) -> dict:
         """What the plan and the records show of the optimizer's own state."""

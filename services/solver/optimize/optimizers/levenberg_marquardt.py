@@ -9,7 +9,7 @@ learning rate ``lr_k`` (the job's schedule)::
            r_{k-1} · γ        if c_k > 1/2 and Δ_{k-1} was capped  (it keeps going the same way)
            r_{k-1}            otherwise
     r_k  = clip(r_k, lr_k, 20 · lr_0),        r_0 = s · lr_0
-    Δ'   = Δ_k · min(1, r_k / max|Δ_k|)
+    Δ'   = Δ_k · min(1, r_k / max|Δ_k / u|)      u: the step units (1, or a rotation's, ``units``)
     p_{k+1} = p_k + clip(Δ', -τ (p_k - lower), τ (upper - p_k)),        τ = 1/2
 
 The growth ``γ`` (``grow``, 3/2 by default) and the start ``s`` (``start``, 1 by default: the first
@@ -104,7 +104,8 @@ class LevenbergMarquardt(ParameterOptimizer):
         self.noisy = self.reversals > NOISY
         if self.noisy:
             self.reversals = 0.0
-        largest = float(np.max(np.abs(delta))) if delta.size else 0.0
+        scaled = delta if self.units is None else delta / self.units   # the radius is in step units
+        largest = float(np.max(np.abs(scaled))) if delta.size else 0.0
         self.capped = largest > self.radius
         if self.capped:
             delta = delta * (self.radius / largest)
@@ -115,6 +116,12 @@ class LevenbergMarquardt(ParameterOptimizer):
 
     def noise_dominated(self) -> bool:
         return self.noisy
+
+    def refused(self) -> None:
+        """A refused step halves the radius and is not the previous step of the next."""
+        self.radius /= 2
+        self.previous = np.zeros_like(self.previous)
+        self.capped = False
 
     def describe(self) -> dict:
         return {"trust_radius": self.radius, "reversals": self.reversals}
