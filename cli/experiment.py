@@ -18,7 +18,7 @@ from pathlib import Path
 import click
 
 from cli.experiment_report import accuracy_svg, aggregates_table, runs_table
-from schemas.methods import Method
+from schemas.methods import methods_for
 
 log = logging.getLogger(__name__)
 
@@ -182,7 +182,8 @@ def experiment_command(spec_path: str, out_dir: str, jobs: int, quiet: bool) -> 
 
 def compare_spec(job: dict, seeds: list[int], target_error: float | None) -> dict:
     name = job.get("name") or "job"
-    spec: dict[str, object] = {"name": f"compare: {name}"[:200], "base": job, "grid": {"method": [m.value for m in Method]},
+    methods = methods_for([p.get("key", "") for p in job.get("parameters") or [] if isinstance(p, dict)])
+    spec: dict[str, object] = {"name": f"compare: {name}"[:200], "base": job, "grid": {"method": [m.value for m in methods]},
             "seeds": seeds, "objective": {"metric": "time_to_error" if target_error else "parameter_error"}}
     if target_error is not None:
         spec["target_error"] = target_error
@@ -202,8 +203,9 @@ def compare_spec(job: dict, seeds: list[int], target_error: float | None) -> dic
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def compare_command(job_path: str, out_dir: str | None, jobs: int, seeds: str, target_error: float | None,
                     server: str | None, quiet: bool) -> None:
-    """Which method for this scene, at what cost: the job with each of the five gradient methods
-    and several seeds, compared by accuracy against time (table, and OUT/compare.svg)."""
+    """Which method for this scene, at what cost: the job with each gradient method that can run it
+    (the five for materials and lights, the two projective ones for a pose) and several seeds,
+    compared by accuracy against time (table, and OUT/compare.svg)."""
     from rich.console import Console
 
     try:

@@ -44,3 +44,16 @@ METHOD_HELP = (
     "(the default: prb, or a projective integrator for geometry, with the optimizer and batch chosen for the job; "
     "plan.json's recipe says what ran and why)."
 )
+
+#: The methods for geometry (a parameter that moves a shape); the others refuse it.
+GEOMETRY_METHODS = (Method.PRB_PROJECTIVE, Method.DIRECT_PROJECTIVE)
+#: Parameter keys that move a shape end with one of these (``services.solver.scene.geometry``).
+GEOMETRY_SUFFIXES = (".to_world.translate", ".to_world.rotate")
+
+
+def methods_for(keys: list[str]) -> list[Method]:
+    """The methods a job of these parameter keys can run: the geometry methods when a key moves a
+    shape, every other method otherwise."""
+    if any(key.endswith(GEOMETRY_SUFFIXES) for key in keys):
+        return list(GEOMETRY_METHODS)
+    return [m for m in Method if m not in GEOMETRY_METHODS]

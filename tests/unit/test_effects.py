@@ -59,7 +59,8 @@ def test_without_interreflection_one_bounce_is_exact():
 
 
 EXPECTED_FIELDS = {Method.NDRF_LHS: (True, True), Method.NDRF_RHS: (True, True), Method.RADIANCE_CACHE: (True, False),
-                   Method.DIRECT: (False, False), Method.PRB: (False, False)}
+                   Method.DIRECT: (False, False), Method.PRB: (False, False),
+                   Method.PRB_PROJECTIVE: (False, False), Method.DIRECT_PROJECTIVE: (False, False)}
 
 
 @pytest.mark.parametrize("method", list(Method))

@@ -28,11 +28,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from schemas.methods import Method
+from schemas.methods import methods_for
 from services.solver.estimators.render import PathDepth
 from tests.support import hard_scenes
 
-METHODS = tuple(m.value for m in Method)
 #: Where the guards count what they sanitized (``Problem.count_sanitized``).
 GUARDS = ("residual", "camera", "candidate pixels (non-finite)", "gradient pixels (non-finite)")
 FIELD_GUARDS = ("residuals clipped", "steps skipped (non-finite loss)", "steps skipped (non-finite gradient)",
@@ -41,6 +40,7 @@ FIELD_GUARDS = ("residuals clipped", "steps skipped (non-finite loss)", "steps s
 DIAGNOSTICS = ("non-finite parameter gradient", "became non-finite")
 TRAINING = {"residual_points": 1024, "incident_samples": 4, "warmup_steps": 50, "steps_per_iteration": 4}
 RED = "red.reflectance.value"
+METHODS = tuple(m.value for m in methods_for([RED]))  # the projective two are for geometry
 
 
 def job(builtin, key, init, target, method, training=None, **extra):
