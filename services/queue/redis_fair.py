@@ -71,18 +71,19 @@ for _ = 1, 256 do
   local job = redis.call('LPOP', list)
   if not job then
     redis.call('ZREM', KEYS[3], owner)
+  elseif redis.call('HGET', KEYS[2], job) ~= 'w' then
+    -- no longer waiting (canceled while queued): dropped without spending the owner's turn
+    if redis.call('LLEN', list) == 0 then redis.call('ZREM', KEYS[3], owner) end
   else
     local turn = redis.call('INCR', KEYS[5])
     redis.call('HSET', KEYS[4], owner, turn)
     if redis.call('LLEN', list) == 0 then redis.call('ZREM', KEYS[3], owner)
     else redis.call('ZADD', KEYS[3], turn, owner) end
-    if redis.call('HGET', KEYS[2], job) == 'w' then
-      local id = redis.call('XADD', KEYS[1], '*', 'job', job)
-      redis.call('HSET', KEYS[2], job, id)
-      redis.call('SADD', 'ndrf:running:' .. owner, job)
-      redis.call('HSET', 'ndrf:job-owner', job, owner)
-      return read()
-    end
+    local id = redis.call('XADD', KEYS[1], '*', 'job', job)
+    redis.call('HSET', KEYS[2], job, id)
+    redis.call('SADD', 'ndrf:running:' .. owner, job)
+    redis.call('HSET', 'ndrf:job-owner', job, owner)
+    return read()
   end
 end
 return false
