@@ -77,7 +77,8 @@ def test_six_runs_two_at_a_time_survive_a_killed_worker_and_append_reruns_nothin
     doomed = stack.add_worker("w1")
     stack.add_worker("w2")
     status, headers, accepted = api.json("POST", "/v1/experiments", {
-        "name": "stable over seeds?", "base": small_job("direct", iterations=ITERATIONS), "seeds": [1, 2, 3, 4, 5, 6],
+        "name": "stable over seeds?", "base": small_job("direct", iterations=ITERATIONS, stop={"auto": False}),
+        "seeds": [1, 2, 3, 4, 5, 6],
         "max_concurrent": 2})
     assert status == 202 and accepted["runs"] == 6 and headers["location"] == f"/v1/experiments/{accepted['id']}"
     exp_id = accepted["id"]
