@@ -143,8 +143,9 @@ def test_a_keys_submit_does_not_queue_behind_another_keys_experiment_checks(stac
 
 
 @pytest.mark.xfail(reason="passes alone; after this file's earlier cases all 3 of alice's jobs started "
-                          "before bob's (seen twice, cause not found; the fair dispatch itself is tested in "
-                          "tests/service/test_tenancy.py)", strict=False)
+                          "before bob's (seen twice; likely stop.auto ending the 400-iteration jobs early, so they are not "
+                          "heavy; the fair dispatch itself is tested in tests/service/test_tenancy.py)",
+                   strict=False)
 def test_a_keys_small_job_waits_for_one_job_of_another_key_not_its_queue(stack):
     """A few heavy jobs queued first: bob's small job waited behind all of them (one FIFO)."""
     alice, bob, admin = stack["api"]["alice"], stack["api"]["bob"], stack["api"]["admin"]
