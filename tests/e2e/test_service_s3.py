@@ -96,7 +96,8 @@ def test_api_and_two_workers_without_a_shared_folder(machines, tmp_path):
 def test_sigkill_and_the_machine_gone_another_worker_resumes_from_the_bucket(machines):
     api = machines.api
     doomed = machines.worker("doomed")
-    _, _, accepted = api.json("POST", "/v1/jobs", small_job(iterations=30))
+    # every iteration of the 30 is checked below: stop.auto off (it tests the resume, not the stop)
+    _, _, accepted = api.json("POST", "/v1/jobs", small_job(iterations=30, stop={"auto": False}))
     job_id = accepted["id"]
     wait_until(lambda: (api.json("GET", f"/v1/jobs/{job_id}")[2].get("iteration") or 0) >= 3, 180, 0.1,
                what="three iterations")
