@@ -137,7 +137,7 @@ def test_frozen_texture_tangents_equal_traced_ones_as_the_texture_changes(mi):
     depth = PathDepth(None, 5)
     frozen, traced = Prb(depth=depth, freeze=True), Prb(depth=depth, freeze=False)
     tangents = []
-    for k, texture in enumerate(textures[:4]):
+    for k, texture in enumerate(textures):
         problem.parameters.assign(texture)
         scalars = list(range(k, problem.parameters.n, 5 + k))
         pair = [prb._forward(problem, scalars, 0, 2, 11 + k) for prb in (frozen, traced)]
@@ -145,7 +145,11 @@ def test_frozen_texture_tangents_equal_traced_ones_as_the_texture_changes(mi):
         np.testing.assert_allclose(pair[0][1], pair[1][1], **TOLERANCE)
         assert np.abs(pair[0][1]).sum() > 0
         tangents.append(pair[0][1])
-    assert frozen._frozen_tangent.n_recordings <= 2   # the first two calls at most record
+    # The first two calls record (the second makes the changed literals opaque); a third recording
+    # was seen once in the full suite (not alone): Dr.Jit also keys a recording on which inputs
+    # alias one variable, which can depend on what earlier tests left. What is tested is replay:
+    # six calls, at most three recordings.
+    assert frozen._frozen_tangent.n_recordings <= 3 < len(textures)
     assert not np.allclose(tangents[2], tangents[1], rtol=0.05)
 
 

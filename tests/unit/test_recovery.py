@@ -53,4 +53,4 @@ def test_hidden_object_albedo_is_recovered_only_by_ndrf(mi, tmp_path):
         job["training"] = dict(job["training"], warmup_steps=20)   # L_phi's quality is beside the point
         stuck, _ = _run(job, tmp_path / method)
         print(f"hidden-object {method} final", stuck)
-        assert np.array_equal(stuck, [0.2, 0.2, 0.2])         # no gradient, no motion
+        np.testing.assert_allclose(stuck, 0.2, rtol=0, atol=1e-6)   # no gradient, no motion (float32 round trip)
