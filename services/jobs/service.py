@@ -209,10 +209,12 @@ class JobService:
         if record.status in FINISHED:
             raise Conflict(f"job {job_id} is already {record.status.value}", record)
         try:
-            return self.states.transition(job_id, JobStatus.CANCELED, expect={JobStatus.QUEUED},
-                                          cancel_requested=True)
+            canceled = self.states.transition(job_id, JobStatus.CANCELED, expect={JobStatus.QUEUED},
+                                              cancel_requested=True)
         except Conflict:  # running (or it just started): its runner stops it
             return self.states.transition(job_id, expect={JobStatus.RUNNING}, cancel_requested=True)
+        self.queue.withdraw(job_id, record.owner)   # no worker picks it up, its owner's turn is not spent
+        return canceled
 
     def request_images(self, job_id: str, caller: Caller = SYSTEM) -> JobRecord:
         """Ask a running job to write the renders of every view and its gradient images at its

@@ -69,6 +69,12 @@ class JobQueue(ABC):
         or, with ``unless_alive``, unless that attempt of it is alive. True if an entry was added."""
 
     @abstractmethod
+    def withdraw(self, job_id: str, owner: str = "") -> bool:
+        """Take a job that still waits in ``owner``'s share out of the queue (it was canceled while
+        queued): it is never handed to a worker and spends none of its owner's turns. A job
+        already handed out is left alone (its runner sees the cancel). True if it was waiting."""
+
+    @abstractmethod
     def lease(self, consumer: str, block_seconds: float) -> Lease | None:
         """The next job for ``consumer``: first a delivery whose owner stopped renewing for a lease
         period, then a job handed back, then the next waiting job of the owner served least

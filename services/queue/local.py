@@ -59,6 +59,19 @@ class LocalJobQueue(JobQueue):
             self._changed.notify()
             return True
 
+    def withdraw(self, job_id: str, owner: str = "") -> bool:
+        with self._changed:
+            jobs = self._waiting.get(owner, deque())
+            kept = deque(waiting for waiting in jobs if waiting[0] != job_id)
+            if len(kept) == len(jobs):
+                return False
+            if kept:
+                self._waiting[owner] = kept
+            else:
+                del self._waiting[owner]
+            self._markers.pop(job_id, None)
+            return True
+
     def _add(self, job_id: str, count: int = 0) -> None:
         """Hand a job back: it goes ahead of every waiting one."""
         entry = str(next(self._ids))

@@ -89,6 +89,16 @@ end
 return false
 """
 
+# KEYS markers, owners   ARGV job, owner: a job canceled while it waits leaves its owner's list
+WITHDRAW = """
+if redis.call('HGET', KEYS[1], ARGV[1]) ~= 'w' then return 0 end
+local list = 'ndrf:wait:' .. ARGV[2]
+local removed = redis.call('LREM', list, 0, ARGV[1])
+redis.call('HDEL', KEYS[1], ARGV[1])
+if redis.call('LLEN', list) == 0 then redis.call('ZREM', KEYS[2], ARGV[2]) end
+return removed
+"""
+
 # Lua run by the queue's release script when a delivery is acked or handed back (ARGV[4]: the job)
 RELEASE_RUNNING = """
 local runner = redis.call('HGET', 'ndrf:job-owner', ARGV[4])

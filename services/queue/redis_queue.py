@@ -196,6 +196,7 @@ class RedisJobQueue(JobQueue):
         self._enqueue = client.register_script(fair.ENQUEUE)
         self._dispatch = client.register_script(fair.DISPATCH)
         self._waiting = client.register_script(fair.WAITING)
+        self._withdraw = client.register_script(fair.WITHDRAW)
         self._unlock = client.register_script(fair.UNLOCK)
         self._renew = client.register_script(_RENEW)
         self._release = client.register_script(_RELEASE)
@@ -224,6 +225,9 @@ class RedisJobQueue(JobQueue):
         beat = BEAT.format(job_id, unless_alive) if unless_alive else ""
         return self._enqueue(keys=[STREAM, MARKERS, beat, fair.OWNERS, fair.SERVED, fair.WAKE],
                              args=[job_id, GROUP, owner]) is not None
+
+    def withdraw(self, job_id: str, owner: str = "") -> bool:
+        return bool(self._withdraw(keys=[MARKERS, fair.OWNERS], args=[job_id, owner]))
 
     def _dispatched(self, consumer: str) -> list[Entry]:
         reply = self._dispatch(keys=[STREAM, MARKERS, fair.OWNERS, fair.SERVED, fair.TURN],

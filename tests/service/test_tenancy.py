@@ -77,6 +77,25 @@ def test_a_keys_job_waits_for_one_job_of_another_key_not_its_queue(kind, redis_s
 
 
 @pytest.mark.parametrize("kind", ["redis", "local"])
+def test_jobs_canceled_while_queued_spend_none_of_their_keys_turns(kind, redis_server):
+    """Bob's jobs canceled while queued stood ahead of his new one and each took a turn of his:
+    alice's whole queue ran before it (seen in tests/e2e/test_adversarial_tenants.py)."""
+    queue = make_queue(kind, redis_server)
+    for i in range(3):
+        queue.enqueue(f"alice-{i}", owner="alice")
+        queue.enqueue(f"bob-old-{i}", owner="bob")
+    for i in range(3):
+        assert queue.withdraw(f"bob-old-{i}", owner="bob")
+    assert not queue.withdraw("bob-old-0", owner="bob")          # only once
+    assert queue.lease("w1", 0.1).job_id == "alice-0"
+    queue.enqueue("bob-new", owner="bob")
+    order = [queue.lease("w1", 0.1).job_id for _ in range(3)]
+    assert order == ["bob-new", "alice-1", "alice-2"]
+    assert queue.lease("w1", 0.05) is None and queue.depth()["waiting"] == 0
+    assert queue.enqueue("bob-old-0", owner="bob")               # a withdrawn job holds no marker
+
+
+@pytest.mark.parametrize("kind", ["redis", "local"])
 def test_keys_take_turns_and_a_job_handed_back_goes_first(kind, redis_server):
     queue = make_queue(kind, redis_server)
     for owner in ("alice", "bob", "carol"):
