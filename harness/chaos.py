@@ -27,7 +27,7 @@ from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
-from harness.cluster import Redis, small_job, start_api, start_worker, wait_until
+from harness.cluster import Api, Redis, small_job, start_api, start_worker, wait_until
 
 log = logging.getLogger(__name__)
 FINISHED = {"succeeded", "failed", "canceled"}
@@ -49,6 +49,9 @@ class ChaosConfig:
     timeout: float = 3600.0
     seed: int = 0
     folder: str | None = None
+    keys: int = 2                         # tenant keys; job i is submitted by key i mod keys
+    running_per_key: int = 2              # quotas on: NDRF_MAX_RUNNING_JOBS_PER_KEY
+    key_bytes: int = 256 << 20            # and NDRF_MAX_KEY_BYTES
 
 
 @dataclass
@@ -81,8 +84,12 @@ class Chaos:
         self.redis = Redis().start()
         self.env = {"REDIS_URL": self.redis.url, "NDRF_STORE": str(self.store),
                     "NDRF_LEASE_SECONDS": str(config.lease_seconds), "NDRF_MAX_ATTEMPTS": str(config.max_attempts),
-                    "NDRF_SCRATCH": str(self.folder / "scratch")}
+                    "NDRF_SCRATCH": str(self.folder / "scratch"),
+                    "NDRF_API_KEYS": ",".join(f"chaos-{k}" for k in range(config.keys)),
+                    "NDRF_MAX_RUNNING_JOBS_PER_KEY": str(config.running_per_key),
+                    "NDRF_MAX_KEY_BYTES": str(config.key_bytes)}
         self.api_proc, self.api = start_api(self.folder, self.env)
+        self.tenants = [Api(self.api.base, f"chaos-{k}") for k in range(config.keys)]
         self.workers = {f"w{i}": start_worker(self.folder, self.env, f"w{i}") for i in range(config.workers)}
 
     # ------------------------------------------------------------------ reads
@@ -160,7 +167,8 @@ class Chaos:
         started = time.monotonic()
         ids = []
         for i in range(config.jobs):
-            status, _, body = self.api.json("POST", "/v1/jobs", small_job(iterations=config.iterations, seed=i + 1))
+            tenant = self.tenants[i % len(self.tenants)]
+            status, _, body = tenant.json("POST", "/v1/jobs", small_job(iterations=config.iterations, seed=i + 1))
             assert status == 202, body
             ids.append(body["id"])
         next_kill = started + config.kill_every
@@ -273,7 +281,9 @@ def run(config: ChaosConfig) -> dict:
 def markdown(report: dict) -> str:
     c = report["config"]
     lines = [f"### Chaos: {report['jobs']} jobs x {c['iterations']} iterations, {c['workers']} workers, "
-             f"a SIGKILL every {c['kill_every']:g} s, lease {c['lease_seconds']:g} s ({report['seconds']:.0f} s)", "",
+             f"a SIGKILL every {c['kill_every']:g} s, lease {c['lease_seconds']:g} s, {c.get('keys', 1)} keys at "
+             f"{c.get('running_per_key', 0)} running jobs and {c.get('key_bytes', 0) >> 20} MiB each "
+             f"({report['seconds']:.0f} s)", "",
              "| jobs | succeeded | failed (injected disk full) | failed healthy | lost | overlapping writers | "
              "kills | adopted after Redis restart |",
              "|---|---|---|---|---|---|---|---|",
