@@ -112,8 +112,8 @@ def describe(prepared: Prepared, recipe: Recipe, built: Built, state: RunState, 
         "scalars": textures.labels,
         "keys": problem.parameters.keys,
         "init": textures.scalars(prepared.init),
-        "lower": textures.scalars(prepared.lower),
-        "upper": [u if np.isfinite(u) else None for u in textures.scalars(prepared.upper)],
+        "lower": _bound(textures.scalars(prepared.lower)),     # None: unbounded (a pose's scalars)
+        "upper": _bound(textures.scalars(prepared.upper)),
         "target_values": None if prepared.target_values is None else textures.scalars(prepared.target_values),
         "textures": textures.plan(prepared.init, prepared.lower, prepared.upper, prepared.target_values),
         "sensors": sorted(prepared.targets),
@@ -126,3 +126,8 @@ def describe(prepared: Prepared, recipe: Recipe, built: Built, state: RunState, 
         "iterations": spec.iterations,
         "warm_start": warm_start,
     }
+
+
+def _bound(values: list[float]) -> list[float | None]:
+    """A bound per scalar for JSON: None where there is none (infinite)."""
+    return [v if np.isfinite(v) else None for v in values]
