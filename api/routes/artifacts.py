@@ -81,6 +81,20 @@ def render_png(job_id: str, k: Iteration, runtime: RuntimeDep, caller: ReaderDep
     return send(files, key, PNG, f"render of iteration {k}")
 
 
+@router.get("/iterations/{k}/silhouette.png", summary="Silhouettes of a geometry job",
+            responses={200: {"content": {PNG: {}}}})
+def silhouette_png(job_id: str, k: Iteration, runtime: RuntimeDep, caller: ReaderDep,
+                   sensor: Annotated[int, Query(ge=0, le=64, description="Sensor index.")] = 0):
+    """The moved shapes' silhouette at iteration ``k`` (orange) over the target in grey, with the
+    target's silhouette outlined (cyan) when the target's values are known; written with the
+    renders, for jobs with pose parameters only."""
+    files = runtime.service.files(job_id, caller)
+    key = files.iteration_key(k, "silhouette.png" if sensor == 0 else f"silhouette-{sensor}.png")
+    if not files.store.exists(key):
+        raise _missing(f"silhouette of iteration {k}")
+    return send(files, key, PNG, f"silhouette of iteration {k}")
+
+
 _GRADIENT = re.compile(r"^(\d{1,4})\.(png|npy)$")
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from schemas.outcomes import Outcome
 from schemas.records import IterationRecord, JobStatus
 from services.jobs.state import Fenced, JobStates
-from services.store.images import exr_bytes, gradient_png, npy_bytes, srgb_png
+from services.store.images import display_png, exr_bytes, gradient_png, npy_bytes, srgb_png
 from services.store.job import JobFiles
 
 log = logging.getLogger(__name__)
@@ -103,12 +103,15 @@ class JobWriter:
         self.event(kind, **payload)
 
     def iteration(self, record: IterationRecord, renders: dict[int, np.ndarray] | None,
-                  gradients: dict[int, np.ndarray] | None) -> None:
+                  gradients: dict[int, np.ndarray] | None, silhouettes: dict[int, np.ndarray] | None = None) -> None:
         self.guard()
         k = record.iteration
         for sensor, image in sorted((renders or {}).items()):
             self._put(self.files.iteration_key(k, "render.png" if sensor == 0 else f"render-{sensor}.png"),
                       srgb_png(image))
+        for sensor, image in sorted((silhouettes or {}).items()):   # display space already: no tone map
+            self._put(self.files.iteration_key(k, "silhouette.png" if sensor == 0 else f"silhouette-{sensor}.png"),
+                      display_png(image))
         for sensor, images in sorted((gradients or {}).items()):
             scales = self._gradient_images(k, sensor, images)
             if record.preview_scales is None:  # the first sensor's, as the previews the dashboard shows

@@ -54,9 +54,10 @@ class PipeReporter:
     def progress(self, kind, payload):
         write_frame(self.stream, "progress", {"kind": kind, "payload": payload})
 
-    def iteration(self, record, renders, gradients):
+    def iteration(self, record, renders, gradients, silhouettes=None):
         blobs = {f"render-{s}": array_bytes(a) for s, a in (renders or {}).items()}
         blobs |= {f"gradients-{s}": array_bytes(a) for s, a in (gradients or {}).items()}
+        blobs |= {f"silhouette-{s}": array_bytes(a) for s, a in (silhouettes or {}).items()}
         write_frame(self.stream, "iteration", {"record": record.model_dump(mode="json")}, blobs)
 
     def textures(self, iteration, images):

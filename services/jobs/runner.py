@@ -272,7 +272,10 @@ class AttemptRunner:
                        if k.startswith("render-")}
             gradients = {int(k.split("-", 1)[1]): array_from(b, ndim=4) for k, b in blobs.items()
                          if k.startswith("gradients-")}
-            writer.iteration(IterationRecord.model_validate(meta["record"]), renders or None, gradients or None)
+            silhouettes = {int(k.split("-", 1)[1]): array_from(b, ndim=3) for k, b in blobs.items()
+                           if k.startswith("silhouette-")}
+            writer.iteration(IterationRecord.model_validate(meta["record"]), renders or None, gradients or None,
+                             silhouettes or None)
         elif kind == "textures":
             names = [str(name) for name in meta["names"]]
             iteration = None if meta["iteration"] is None else int(meta["iteration"])

@@ -66,6 +66,12 @@ def srgb_png(image: np.ndarray, exposure: float = 1.0) -> bytes:
     return _png((srgb * 255 + 0.5).astype(np.uint8), {})
 
 
+def display_png(image: np.ndarray) -> bytes:
+    """PNG of an image already in display space ``(H, W, 3)`` in [0, 1] (a silhouette overlay)."""
+    x = np.clip(np.nan_to_num(np.asarray(image, np.float64)[..., :3]), 0.0, 1.0)
+    return _png((x * 255 + 0.5).astype(np.uint8), {})
+
+
 def npy_bytes(array: np.ndarray) -> bytes:
     buffer = io.BytesIO()
     np.save(buffer, np.asarray(array))

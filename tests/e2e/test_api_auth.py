@@ -38,6 +38,7 @@ def test_every_v1_route_needs_a_key(served):
 
 
 JOB_ROUTES = [("GET", ""), ("GET", "/iterations"), ("GET", "/events"), ("GET", "/iterations/0/render.png"),
+              ("GET", "/iterations/0/silhouette.png"),
               ("GET", "/iterations/1/gradients/0.png"), ("GET", "/iterations/1/gradients.npy"),
               ("GET", "/targets/0.png"), ("GET", "/targets/0.exr"), ("GET", "/checkpoints/latest"), ("POST", "/cancel"),
               ("DELETE", "")]

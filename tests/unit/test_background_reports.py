@@ -33,7 +33,7 @@ class Host:
     def progress(self, kind, payload):
         self._got("progress", kind)
 
-    def iteration(self, record, renders, gradients):
+    def iteration(self, record, renders, gradients, silhouettes=None):
         self._got("iteration", record)
 
     def checkpoint(self, state, next_iteration):

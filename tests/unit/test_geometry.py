@@ -193,3 +193,13 @@ def test_levenberg_marquardt_recovers_a_pose(tmp_path):
     assert abs(final[4] - target[4]) < 10.0, final.tolist()
     poses = json.loads((tmp_path / "final" / "poses.json").read_text())
     assert poses == summary["poses"] and poses[0]["shape"] == "block"
+    # the dashboard's silhouettes, with the last iteration's images: both colours drawn
+    from PIL import Image
+
+    from services.solver.scene.silhouettes import CURRENT, TARGET
+
+    for name in ("silhouette.png", "silhouette-1.png"):
+        pixels = np.asarray(Image.open(tmp_path / "iterations" / f"{11:06d}" / name)).reshape(-1, 3) / 255.0
+        assert np.any(np.all(np.abs(pixels - TARGET) < 0.01, axis=1)), name        # the target's outline
+        tint = (pixels - pixels.mean(1, keepdims=True)) @ (CURRENT - CURRENT.mean())
+        assert np.any(tint > 0.05), name                                         # the block now

@@ -107,8 +107,8 @@ class BackgroundReporter:
         self._submit("progress", kind, payload)
 
     def iteration(self, record: IterationRecord, renders: dict[int, np.ndarray] | None,
-                  gradients: dict[int, np.ndarray] | None) -> None:
-        self._submit("iteration", record, renders, gradients)
+                  gradients: dict[int, np.ndarray] | None, silhouettes: dict[int, np.ndarray] | None = None) -> None:
+        self._submit("iteration", record, renders, gradients, silhouettes)
 
     def textures(self, iteration: int | None, images: dict[str, np.ndarray]) -> None:
         self._submit("textures", iteration, images)

@@ -18,6 +18,7 @@ from schemas.job import JobSpec
 from services.solver.estimators.methods import Fields, GradientMethod
 from services.solver.estimators.methods.cached import CachedFirstHits
 from services.solver.estimators.render import PathDepth, render
+from services.solver.scene.silhouettes import overlay, silhouette
 from services.solver.seeds import derive_seed
 
 
@@ -72,3 +73,23 @@ def render_views(prepared, method: GradientMethod, fields: Fields, candidates: d
             gradients[sensor] = np.nan_to_num(method.gradient_images(problem, fields, spp=gradient_spp, seed=seed,
                                                             sensor=sensor), nan=0.0, posinf=0.0, neginf=0.0)
     return renders, gradients
+
+
+def silhouette_views(prepared, current: np.ndarray, cache: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+    """A geometry job's silhouettes (:mod:`services.solver.scene.silhouettes`) in every view: its
+    overlay ``(H, W, 3)`` in display space, of the moved shapes at ``current`` ``(P,)`` (the
+    scene's parameters now) over the target, with the target's silhouette outlined when the
+    target's values are known. ``cache`` keeps the target's silhouettes (computed once, at the
+    target values, the parameters then put back)."""
+    problem = prepared.problem
+    params, scene = problem.parameters, problem.scene
+    shapes = sorted(params.poses)
+    if not cache and prepared.target_values is not None:
+        params.assign(prepared.target_values)
+        try:
+            cache.update({s: silhouette(scene.scene, shapes, scene.sensor(s)) for s in prepared.targets})
+        finally:
+            params.assign(current)
+    return {s: overlay(prepared.targets[s], silhouette(scene.scene, shapes, scene.sensor(s)), cache.get(s))
+            for s in sorted(prepared.targets)}
+

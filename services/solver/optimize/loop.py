@@ -38,7 +38,7 @@ from services.solver.optimize.background import BackgroundReporter
 from services.solver.optimize.build import Built, build
 from services.solver.optimize.estimate import BatchEstimate, block_of, estimate_batch
 from services.solver.optimize.floor import block_residual
-from services.solver.optimize.images import render_views
+from services.solver.optimize.images import render_views, silhouette_views
 from services.solver.optimize.recipe import Decision, Recipe
 from services.solver.optimize.regularize import regularized
 from services.solver.optimize.report import RunAborted, RunOutcome, RunReporter, StopReason
@@ -125,6 +125,7 @@ class InverseRenderingRun:
         self.listed: TextureReport | None = None  # which scalars reports list (textures are summarised)
         self.seconds: dict = {}                   # preparing and deciding (plan.json's prepared_seconds)
         self.parameter_set: ParameterSet | None = None   # the job's parameters once prepared (their poses)
+        self._target_silhouettes: dict[int, np.ndarray] = {}   # a geometry job's, by view (computed once)
 
     def execute(self) -> RunOutcome:
         """Run to the end, to a cancel or to an interruption. A job that fails returns a failed
@@ -229,7 +230,7 @@ class InverseRenderingRun:
         batch = views.batch(state.views_offset, state.batch.views)
         estimate = estimate_batch(k, prepared, recipe, built, state, batch, fields_of(built.trainer))
         clock.lap("gradient")
-        renders, gradients = self._images(k, prepared, recipe, built, state, estimate, clock)
+        renders, gradients, silhouettes = self._images(k, prepared, recipe, built, state, estimate, clock)
         lr = recipe.steps.learning_rate_at(k)
         gradient = regularized(prepared.textures, self.spec.textures, estimate.dz_dp, state.parameters, k,
                                self.spec.iterations, dict(recipe.texture_blocks))
@@ -247,7 +248,7 @@ class InverseRenderingRun:
         record = self._record(k, prepared, built, state, estimate, answer, updated, lr, training, clock,
                               renders is not None)
         state.images.spent(clock.seconds.get("images", 0.0), clock.elapsed, written=renders is not None)
-        self.reporter.iteration(record, renders, gradients)
+        self.reporter.iteration(record, renders, gradients, silhouettes)
         state.advance(prepared, updated, batch.offset)
         if grown is not None:
             state.events.append(grown)
@@ -283,18 +284,22 @@ class InverseRenderingRun:
                 "residual_differential": float(np.mean(differential)) if differential else None}
 
     def _images(self, k: int, prepared: Prepared, recipe: Recipe, built: Built, state: RunState,
-                estimate: BatchEstimate, clock: Clock) -> tuple[dict | None, dict | None]:
+                estimate: BatchEstimate, clock: Clock) -> tuple[dict | None, dict | None, dict | None]:
         """Every view's render and gradient images at the iteration's parameters, when due
-        (:class:`~.images.ImageSchedule`); a texture job's textures and their gradient."""
+        (:class:`~.images.ImageSchedule`), and a geometry job's silhouettes; a texture job's
+        textures and their gradient."""
         if not state.images.due(k, self.spec, asked=self.reporter.images_requested(), elapsed=clock.elapsed):
-            return None, None
+            return None, None, None
         renders, gradients = render_views(prepared, built.method, fields_of(built.trainer), estimate.candidates, k,
                                           state.batch.spp, state.batch.gradient_spp, recipe.depth)
         if prepared.textures:  # each texture and its gradient (a texture too), never P images
             self.reporter.textures(k, prepared.textures.images(state.parameters)
                                    | prepared.textures.gradients(estimate.dz_dp))
+        silhouettes = None
+        if prepared.problem.parameters.has_geometry:
+            silhouettes = silhouette_views(prepared, state.parameters, self._target_silhouettes)
         clock.lap("images")
-        return renders, gradients
+        return renders, gradients, silhouettes
 
     @staticmethod
     def _answer(k: int, prepared: Prepared, recipe: Recipe, built: Built, state: RunState,

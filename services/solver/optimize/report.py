@@ -36,9 +36,10 @@ class RunReporter(Protocol):
         ``resumed`` (the iteration a resumed run continues from)."""
 
     def iteration(self, record: IterationRecord, renders: dict[int, np.ndarray] | None,
-                  gradients: dict[int, np.ndarray] | None) -> None:
+                  gradients: dict[int, np.ndarray] | None, silhouettes: dict[int, np.ndarray] | None = None) -> None:
         """One iteration; ``renders`` (sensor -> ``(H, W, 3)``) and ``gradients`` (sensor ->
-        ``(P, H, W, 3)`` float32) only on iterations that write images."""
+        ``(P, H, W, 3)`` float32) only on iterations that write images, and then a geometry job's
+        ``silhouettes`` (sensor -> ``(H, W, 3)`` in display space, :mod:`~.images`)."""
 
     def textures(self, iteration: int | None, images: dict[str, np.ndarray]) -> None:
         """A texture job's textures ``(H, W, C)`` float32 by name: at an iteration that writes

@@ -28,6 +28,11 @@ export function imagesPanel(jobId) {
   const render = picture("render-image", "candidate render");
   const target = picture("target-image", "target image");
   const renderCaption = h("figcaption", "Render");
+  // a geometry job's silhouettes: the moved shapes now (orange) over the target, its outline (cyan)
+  const silhouette = picture("silhouette-image", "silhouettes");
+  const silhouetteFigure = h("figure.image-figure.missing", { hidden: true }, silhouette,
+    h("figcaption", "Silhouette: now (orange), target (cyan)"));
+  let geometry = false;
   const slider = h("input.slider", { type: "range", min: 0, max: 0, step: 1, value: 0, disabled: true,
     dataset: { testid: "iteration-slider" }, "aria-label": "iteration of the images" });
   const sliderLabel = h("span.slider-label.num", { dataset: { testid: "slider-iteration" } }, "—");
@@ -56,7 +61,8 @@ export function imagesPanel(jobId) {
     h("div.images-body",
       h("div.image-pair",
         h("figure.image-figure.missing", render, renderCaption),
-        h("figure.image-figure.missing", target, h("figcaption", "Target"))),
+        h("figure.image-figure.missing", target, h("figcaption", "Target")),
+        silhouetteFigure),
       scalarGradients,
       textures));
 
@@ -97,6 +103,7 @@ export function imagesPanel(jobId) {
     element.dataset.shown = `${k}/${sensor}`;
     setSource(render, `${base}/iterations/${k}/render.png${sensor ? `?sensor=${sensor}` : ""}`, force);
     setSource(target, `${base}/targets/${sensor}.png`, force);
+    if (geometry) setSource(silhouette, `${base}/iterations/${k}/silhouette.png${sensor ? `?sensor=${sensor}` : ""}`, force);
     stackLink.href = authUrl(`${base}/iterations/${k}/gradients.npy`);
     const scales = record.preview_scales || [];
     grid.querySelectorAll("figure").forEach((figure, p) => {
@@ -113,6 +120,8 @@ export function imagesPanel(jobId) {
   /** New records (sorted by iteration) or plan: keep the slider and the images in step. */
   function update(records, plan) {
     const scalars = (plan && plan.scalars) || [];
+    geometry = ((plan && plan.keys) || []).some((key) => /\.to_world\.(translate|rotate)$/.test(key));
+    silhouetteFigure.hidden = !geometry;
     scalarGradients.hidden = scalars.length === 0 && ((plan && plan.textures) || []).length > 0;
     if (scalars.join("\n") !== labels.join("\n")) {
       labels = scalars;
