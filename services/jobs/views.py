@@ -117,8 +117,8 @@ def render_in_child(spec: JobSpec, checkpoint: bytes, request: ViewRequest,
 def render_warm(sessions: ViewSessions, job_id: str, spec: JobSpec, checkpoint: bytes, request: ViewRequest,
                 limits: Limits, owner: str = "") -> tuple[dict, dict[str, np.ndarray], bool]:
     """The view from this checkpoint's warm child (started if needed); ``(meta, arrays, warm)``
-    where ``warm`` says an already running child answered. A warm child that died (or was closed
-    idle while this request waited) is replaced once."""
+    where ``warm`` says an already running child answered. A warm child that died (or was closed,
+    idle or evicted, while this request waited for it) is replaced once."""
     for _ in range(2):
         try:
             session, started = sessions.session(job_id, spec, checkpoint, limits, owner)
@@ -128,7 +128,7 @@ def render_warm(sessions: ViewSessions, job_id: str, spec: JobSpec, checkpoint: 
             kind, meta, blobs = session.view(request)
         except ChildFailed as exc:
             sessions.drop(session)
-            if started:
+            if started and not session.retired:   # retired: closed under it before its view (evicted, replaced)
                 raise InvalidJob("view", public_message(str(exc))) from None
             continue
         if (kind == "invalid" and started) or not session.kept:   # no child kept for it
