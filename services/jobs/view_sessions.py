@@ -25,7 +25,9 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import logging
+import os
 import queue
+import secrets
 import shutil
 import tempfile
 import threading
@@ -88,24 +90,26 @@ class ViewSession:
     def alive(self) -> bool:
         return self.child.proc.poll() is None
 
-    def view(self, request: ViewRequest) -> tuple[str, dict, dict[str, bytes]]:
-        """The child's answer to ``request``: ``(kind, meta, blobs)``; :class:`ChildFailed` (the
-        session is then dead) when it died, took longer than ``view_seconds``, or was closed
-        while this request waited for it."""
+    def view(self, request: ViewRequest, out: Path) -> tuple[str, dict, dict[str, bytes]]:
+        """The child's answer to ``request``: ``(kind, meta, blobs)``, the view's files moved into
+        ``out`` (out of the child's reach, before another view or a close can touch them);
+        :class:`ChildFailed` (the session is then dead) when it died, took longer than
+        ``view_seconds``, or was closed while this request waited for it."""
         try:
             with self.lock:
-                return self._view(request)
+                return self._view(request, out)
         finally:
             if self.retired and not self.closed:   # retired while it answered: closed now that it has
                 self.retire()
 
-    def _view(self, request: ViewRequest) -> tuple[str, dict, dict[str, bytes]]:
+    def _view(self, request: ViewRequest, out: Path) -> tuple[str, dict, dict[str, bytes]]:
         if self.closed or self.retired:   # closed while this request waited for it: a fresh one answers
             self.close()
             raise ChildFailed("the view child was closed before this view")
         self.used = time.monotonic()
+        written = self.folder / f"out-{secrets.token_hex(6)}"
         try:
-            write_frame(self.child.stdin, "view", {"request": request.model_dump(mode="json")})
+            write_frame(self.child.stdin, "view", {"request": request.model_dump(mode="json"), "out": str(written)})
             frame = self.frames.get(timeout=self.wall)
         except (BrokenPipeError, OSError, ValueError):   # ValueError: its stdin was closed meanwhile
             frame = None
@@ -117,6 +121,11 @@ class ViewSession:
         if frame is None:
             self.close()
             raise ChildFailed(self.child.describe_exit("the view"))
+        if frame[0] == "viewed":
+            with contextlib.suppress(OSError):   # none: the caller says the child wrote no files
+                os.rename(written, out)
+        else:
+            shutil.rmtree(written, ignore_errors=True)
         return frame
 
     def retire(self) -> None:

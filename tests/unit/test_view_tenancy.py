@@ -60,7 +60,7 @@ def test_a_warm_child_evicted_during_a_view_is_closed_after_it_not_under_it():
 
     in_flight = [False]
 
-    def answer(request):
+    def answer(request, out):
         in_flight[0] = True
         session.retire()                          # another request evicts it meanwhile
         assert not session.closed                 # the child answering is not killed under the view
@@ -68,5 +68,5 @@ def test_a_warm_child_evicted_during_a_view_is_closed_after_it_not_under_it():
         return "viewed", {}, {}
 
     session.close, session._view = close, answer
-    assert session.view(None) == ("viewed", {}, {})
+    assert session.view(None, None) == ("viewed", {}, {})
     assert closed_during == [False] and session.closed   # closed once the view let go of it
