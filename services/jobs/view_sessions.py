@@ -18,6 +18,10 @@ session while the others wait for it (one child, not one per request), then each
 session's lock in turn. A session evicted, replaced or dropped while a view holds it is only
 *retired*: the view in flight finishes and the session is closed when it lets go; a view that
 was waiting for it then finds it closed and is answered by a fresh session (``views.py``).
+
+Each view's files are written by the child into a folder of its work folder, which the session
+moves out of the child's reach (into the folder the caller names) before it lets go of the lock:
+neither the next view nor a close touches them (:mod:`services.jobs.view_files`).
 """
 
 from __future__ import annotations
@@ -104,6 +108,7 @@ class ViewSession:
 
     def _view(self, request: ViewRequest, out: Path) -> tuple[str, dict, dict[str, bytes]]:
         if self.closed or self.retired:   # closed while this request waited for it: a fresh one answers
+            self.retired = True            # (views.render_warm retries on a retired session)
             self.close()
             raise ChildFailed("the view child was closed before this view")
         self.used = time.monotonic()
