@@ -75,7 +75,7 @@ class OpenView:
     files: dict[str, tuple[BinaryIO, int]]
 
     @property
-    def bytes(self) -> int:
+    def total(self) -> int:
         return sum(size for _, size in self.files.values())
 
     def read(self, name: str, most: int) -> bytes:

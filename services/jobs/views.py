@@ -148,7 +148,7 @@ def store_view(files: JobFiles, view_id: str, opened: OpenView, meta: dict, requ
             return {name: opened.read(name, INLINE_PNG_BYTES) for name in opened.files if name.endswith(".png")}
         except ValueError as exc:
             raise InvalidJob("view", f"an inline image is too large ({exc}): ask without inline") from None
-    size, used = opened.bytes + len(description), files.store.prefix_bytes(files.prefix)
+    size, used = opened.total + len(description), files.store.prefix_bytes(files.prefix)
     if used + size > limits.job_bytes:
         raise OverBudget(f"the view's {size} bytes would take the job's files over {limits.job_bytes} bytes "
                          f"(NDRF_MAX_JOB_BYTES; they hold {used}): delete the job's views or ask for a smaller one")
