@@ -143,7 +143,11 @@ class Scheduler:
                 break
             record = min(candidates, key=lambda r: (self._served.get(r.id, 0.0), r.id))
             self._served[record.id] = time.monotonic()
-            fresh = self.admit(record.id)
+            try:
+                fresh = self.admit(record.id)
+            except UnknownExperiment:     # gone since it was read
+                self._read.pop(record.id, None)
+                fresh = None
             if fresh is None:
                 open_ = [r for r in open_ if r.id != record.id]
                 continue
