@@ -25,7 +25,7 @@ def client(tmp_path_factory):
     store = tmp_path_factory.mktemp("views-concurrent") / "store"
     # four places per key: the key's concurrent views reach the view children at once
     settings = Settings(store=str(store), api_keys=["alice-key", "bob-key"], admission_per_key=4,
-                        preflight_workers=6, view_children=2)
+                        preflight_workers=6, view_children=2, view_keep_seconds=900)   # none idles out
     with TestClient(create_app(settings)) as client:
         yield client
 
