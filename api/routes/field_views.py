@@ -36,7 +36,9 @@ async def create(job_id: str, request: ViewRequest, runtime: RuntimeDep, caller:
     the job's latest checkpoint (a running job's too), and ``prb``'s gradient image from the same
     camera when ``prb_spp`` is set. A job's checkpoint is restored once in a warm sandboxed child
     kept for ``NDRF_VIEW_KEEP_SECONDS`` after its last view (the next views skip the child's start);
-    ``inline`` answers the PNGs in the response and stores nothing. A job without a checkpoint yet, or whose method trains no
+    ``inline`` answers the PNGs in the response and stores nothing. Concurrent views of one
+    checkpoint are serialized on its warm child (each waits its turn; none is refused or a
+    ``500``). A job without a checkpoint yet, or whose method trains no
     field, or whose files would exceed the job's disk budget, is a ``409``; a camera that cannot be
     built a ``422``."""
     owner = runtime.service.record(job_id, caller).owner   # the warm child belongs to the job's key

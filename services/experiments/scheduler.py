@@ -24,6 +24,12 @@ Where it runs: every API process and every ``ndrf worker`` runs :meth:`Scheduler
 process at a time, which only saves work: correctness rests on the compare-and-set. A tick also
 refreshes each active experiment's run statuses from its jobs' records (a worker finishing a
 job frees its slot at the next tick, every ``interval`` seconds).
+
+A tick reads again only the experiments that may have changed (issue 38: 60 experiments of 200
+runs took 20% of a core re-read every 0.5 s): those whose marker changed since the last read
+(every change of a record writes a new marker, :meth:`ExperimentStates.active_marks`), and those
+with a run admitting, queued or running (their jobs change without their record). The others are
+kept as read, and everything is read again every ``rescan_seconds``.
 """
 
 from __future__ import annotations
@@ -80,6 +86,7 @@ class Scheduler:
         self.interval, self.leader, self.rescan_seconds = interval, leader, rescan_seconds
         self._bases: dict[str, dict] = {}
         self._served: dict[str, float] = {}
+        self._read: dict[str, tuple[bytes, ExperimentRecord]] = {}   # by experiment: its marker when read, the record
         self._last_rescan = float("-inf")
         self.stopping = threading.Event()
 
@@ -108,14 +115,25 @@ class Scheduler:
         Returns how many runs were admitted."""
         self._rescan()
         open_: list[ExperimentRecord] = []
-        for exp_id in self.states.active_ids():
+        marks = self.states.active_marks()
+        for exp_id in set(self._read) - set(marks):
+            self._read.pop(exp_id)
+        for exp_id, mark in marks.items():
+            read = self._read.get(exp_id)
+            if read is not None and read[0] == mark and not self._moving(read[1]):
+                open_.append(read[1])   # unchanged since it was read, and nothing of it in flight
+                continue
             try:
                 record = self.refresh(exp_id)
             except UnknownExperiment:
                 self.states.unmark_active(exp_id)
+                self._read.pop(exp_id, None)
                 continue
             if record is not None:
+                self._read[exp_id] = (mark, record)
                 open_.append(record)
+            else:
+                self._read.pop(exp_id, None)
         admitted = 0
         for _ in range(64):
             if self.queue.depth().get("waiting", 0) > 0:
@@ -125,7 +143,11 @@ class Scheduler:
                 break
             record = min(candidates, key=lambda r: (self._served.get(r.id, 0.0), r.id))
             self._served[record.id] = time.monotonic()
-            fresh = self.admit(record.id)
+            try:
+                fresh = self.admit(record.id)
+            except UnknownExperiment:     # gone since it was read
+                self._read.pop(record.id, None)
+                fresh = None
             if fresh is None:
                 open_ = [r for r in open_ if r.id != record.id]
                 continue
@@ -133,6 +155,13 @@ class Scheduler:
             open_ = [fresh if r.id == fresh.id else r for r in open_]
             time.sleep(0.05)           # let an idle worker take it before looking at the queue again
         return admitted
+
+    @staticmethod
+    def _moving(record: ExperimentRecord) -> bool:
+        """Whether the record may be out of date without a change of its own: a run being
+        admitted (a stale admission to complete) or whose job is queued or running."""
+        return any(run.status == "admitting" or (run.job and run.status in ("queued", "running"))
+                   for run in record.runs)
 
     @staticmethod
     def _has_slot(record: ExperimentRecord) -> bool:
@@ -153,6 +182,7 @@ class Scheduler:
         if now - self._last_rescan < self.rescan_seconds:
             return
         self._last_rescan = now
+        self._read.clear()   # every active experiment is read again at this tick
         active = set(self.states.active_ids())
         for record in self.states.records():
             if record.id not in active and not record.status.finished:

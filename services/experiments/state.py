@@ -6,7 +6,9 @@ Store layout (any :class:`~services.store.base.ArtifactStore`, folder or object 
     experiments/<id>/base.json         the base job (written once; it may carry a whole scene)
     experiments/<id>/events.jsonl      append-only event log (status, run changes), for SSE
     experiments/<id>/metrics/<job>.json  derived metrics of a finished run's job (a cache)
-    experiments-active/<id>            marker: the scheduler looks at this experiment
+    experiments-active/<id>            marker: the scheduler looks at this experiment; its content
+                                       changes with every change of the record (the scheduler
+                                       reads again only an experiment whose marker changed)
 
 Every change is a compare-and-set (``put_if`` on the version read), retried on contention, so
 two schedulers, or a scheduler and an API process handling a cancel, never lose each other's
@@ -79,6 +81,17 @@ class ExperimentStates:
         return sorted(key[len(ACTIVE):] for key in self.store.keys(ACTIVE, delimiter=True)
                       if EXPERIMENT_ID.match(key[len(ACTIVE):]))
 
+    def active_marks(self) -> dict[str, bytes]:
+        """The active experiments and their markers' content, which every change of a record
+        changes (:meth:`update` writes the marker after the record): a reader that saw a marker
+        before reading the record sees a different one after any later change."""
+        marks = {}
+        for exp_id in self.active_ids():
+            mark = self.store.get(ACTIVE + exp_id)
+            if mark is not None:
+                marks[exp_id] = mark
+        return marks
+
     # ------------------------------------------------------------------- writes
 
     def create(self, record: ExperimentRecord, base: dict) -> ExperimentRecord:
@@ -118,6 +131,8 @@ class ExperimentStates:
                 break
         else:
             raise ExperimentConflict(f"experiment {exp_id}: the record kept changing ({self.retries} attempts)")
+        if not after.status.finished or not before.status.finished:
+            self.mark_active(exp_id)   # a new marker: the scheduler reads this record again
         for event in events or ():
             self.event(exp_id, event)
         if after.status != before.status:
@@ -136,7 +151,8 @@ class ExperimentStates:
     # ------------------------------------------------------------------ markers
 
     def mark_active(self, exp_id: str) -> None:
-        self.store.put(ACTIVE + exp_id, b"1\n")
+        """Mark the experiment for the scheduler, with a marker unlike any it had."""
+        self.store.put(ACTIVE + exp_id, f"{time.time_ns()} {secrets.token_hex(4)}\n".encode())
 
     def unmark_active(self, exp_id: str) -> None:
         self.store.delete_prefix(ACTIVE + exp_id)

@@ -11,9 +11,11 @@
               list each ``list`` folder, to read each ``read`` file and to unmount each ``unmount``
               folder; answers ``probed`` {write, connect, list, read, unmount, uid, capabilities,
               cwd_writable}
-``view``      render a job's fields from a camera (:mod:`services.solver.optimize.field_views`):
-              answers ``viewed`` {scalars, seconds, camera, iteration} with the arrays
-              ``radiance``, ``gradients`` and ``prb`` (when asked), or ``invalid`` {field, message}
+``view``      render a job's fields from a camera (:mod:`services.solver.optimize.field_views`),
+              write the view's files into the start's ``out`` folder of its work folder
+              (:func:`services.jobs.view_files.write_view`: the arrays never travel through the
+              parent) and answer ``viewed`` {scalars, seconds, camera, iteration, method,
+              scales}, or ``invalid`` {field, message}
 ``device``    the device this child runs on (``NDRF_DEVICE`` resolved: :mod:`services.jobs.device`):
               answers ``device`` {device, name, variant, requested, reason}
 ``run``       run the job (:class:`services.solver.optimize.loop.InverseRenderingRun`), forwarding
@@ -220,16 +222,22 @@ def view(start: dict, out) -> None:
     except ValueError as exc:  # a camera that cannot be built, a checkpoint without fields
         write_frame(out, "invalid", {"field": "view", "message": str(exc)})
         return
-    blobs = {"radiance": array_bytes(result.radiance), "gradients": array_bytes(result.gradients)}
-    if result.prb is not None:
-        blobs["prb"] = array_bytes(result.prb)
+    _viewed(out, restored, result, Path(start["out"]))
+
+
+def _viewed(out, restored, result, folder: Path) -> None:
+    """Write a view's files into ``folder`` and answer ``viewed`` (no arrays in the frame)."""
+    from services.jobs.view_files import write_view
+
+    written = write_view(folder, result.radiance, result.gradients, result.prb)
     write_frame(out, "viewed", {"scalars": result.scalars, "seconds": result.seconds, "camera": result.camera,
-                                "iteration": restored.iteration, "method": restored.method}, blobs)
+                                "iteration": restored.iteration, "method": restored.method, **written})
 
 
 def views(start: dict, out) -> None:
     """A warm view child (:mod:`services.jobs.view_sessions`): the checkpoint restored once, then
-    one ``viewed`` (or ``invalid``) frame per ``view`` frame read, until stdin closes."""
+    one ``viewed`` (or ``invalid``) frame per ``view`` frame {request, out} read, until stdin
+    closes; each view's files written into its ``out`` folder as :func:`view` does."""
     from schemas.errors import InvalidJob
     from schemas.job import JobSpec
     from schemas.views import ViewRequest
@@ -258,11 +266,7 @@ def views(start: dict, out) -> None:
         except ValueError as exc:
             write_frame(out, "invalid", {"field": "view", "message": str(exc)})
             continue
-        blobs = {"radiance": array_bytes(result.radiance), "gradients": array_bytes(result.gradients)}
-        if result.prb is not None:
-            blobs["prb"] = array_bytes(result.prb)
-        write_frame(out, "viewed", {"scalars": result.scalars, "seconds": result.seconds, "camera": result.camera,
-                                    "iteration": restored.iteration, "method": restored.method}, blobs)
+        _viewed(out, restored, result, Path(frame[1]["out"]))
 
 
 #: The stop the parent asked for (set by the signal handlers, installed first thing in main:

@@ -12,6 +12,16 @@ sessions live at once (the least recently used one is closed first); a session o
 ``limits.view_seconds`` x 4 is closed at its next use (its CPU limit grows with each view). A
 child that fails or times out is killed and its session dropped; the request fails as a one-off
 view would.
+
+Concurrent views of one checkpoint are serialized, never refused: one request starts the
+session while the others wait for it (one child, not one per request), then each view holds the
+session's lock in turn. A session evicted, replaced or dropped while a view holds it is only
+*retired*: the view in flight finishes and the session is closed when it lets go; a view that
+was waiting for it then finds it closed and is answered by a fresh session (``views.py``).
+
+Each view's files are written by the child into a folder of its work folder, which the session
+moves out of the child's reach (into the folder the caller names) before it lets go of the lock:
+neither the next view nor a close touches them (:mod:`services.jobs.view_files`).
 """
 
 from __future__ import annotations
@@ -19,7 +29,9 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import logging
+import os
 import queue
+import secrets
 import shutil
 import tempfile
 import threading
@@ -45,6 +57,7 @@ class ViewSession:
                  owner: str = ""):
         self.job_id, self.digest, self.owner = job_id, digest, owner
         self.kept = True   # False: not among the warm children (no room that its key may take): closed after use
+        self.retired = self.closed = False   # retired: closed once the view holding it lets go
         self.wall = limits.view_seconds
         self.started = self.used = time.monotonic()
         self.lock = threading.Lock()
@@ -81,27 +94,57 @@ class ViewSession:
     def alive(self) -> bool:
         return self.child.proc.poll() is None
 
-    def view(self, request: ViewRequest) -> tuple[str, dict, dict[str, bytes]]:
-        """The child's answer to ``request``: ``(kind, meta, blobs)``; :class:`ChildFailed` (the
-        session is then dead) when it died or took longer than ``view_seconds``."""
-        with self.lock:
+    def view(self, request: ViewRequest, out: Path) -> tuple[str, dict, dict[str, bytes]]:
+        """The child's answer to ``request``: ``(kind, meta, blobs)``, the view's files moved into
+        ``out`` (out of the child's reach, before another view or a close can touch them);
+        :class:`ChildFailed` (the session is then dead) when it died, took longer than
+        ``view_seconds``, or was closed while this request waited for it."""
+        try:
+            with self.lock:
+                return self._view(request, out)
+        finally:
+            if self.retired and not self.closed:   # retired while it answered: closed now that it has
+                self.retire()
+
+    def _view(self, request: ViewRequest, out: Path) -> tuple[str, dict, dict[str, bytes]]:
+        if self.closed or self.retired:   # closed while this request waited for it: a fresh one answers
+            self.retired = True            # (views.render_warm retries on a retired session)
+            self.close()
+            raise ChildFailed("the view child was closed before this view")
+        self.used = time.monotonic()
+        written = self.folder / f"out-{secrets.token_hex(6)}"
+        try:
+            write_frame(self.child.stdin, "view", {"request": request.model_dump(mode="json"), "out": str(written)})
+            frame = self.frames.get(timeout=self.wall)
+        except (BrokenPipeError, OSError, ValueError):   # ValueError: its stdin was closed meanwhile
+            frame = None
+        except queue.Empty:
+            self.close()
+            raise ChildFailed(self.child.describe_exit("the view", timed_out=True)) from None
+        finally:
             self.used = time.monotonic()
+        if frame is None:
+            self.close()
+            raise ChildFailed(self.child.describe_exit("the view"))
+        if frame[0] == "viewed":
+            with contextlib.suppress(OSError):   # none: the caller says the child wrote no files
+                os.rename(written, out)
+        else:
+            shutil.rmtree(written, ignore_errors=True)
+        return frame
+
+    def retire(self) -> None:
+        """Close the session once no view holds it: now when it is idle, else when the view in
+        flight ends (:meth:`view`)."""
+        self.retired = True
+        if self.lock.acquire(blocking=False):
             try:
-                write_frame(self.child.stdin, "view", {"request": request.model_dump(mode="json")})
-                frame = self.frames.get(timeout=self.wall)
-            except (BrokenPipeError, OSError, ValueError):   # ValueError: its stdin was closed meanwhile
-                frame = None
-            except queue.Empty:
                 self.close()
-                raise ChildFailed(self.child.describe_exit("the view", timed_out=True)) from None
             finally:
-                self.used = time.monotonic()
-            if frame is None:
-                self.close()
-                raise ChildFailed(self.child.describe_exit("the view"))
-            return frame
+                self.lock.release()
 
     def close(self) -> None:
+        self.closed = True
         with contextlib.suppress(OSError):
             self.child.stdin.close()
         self.child.kill()
@@ -115,6 +158,7 @@ class ViewSessions:
         self.keep_seconds, self.most = keep_seconds, most
         self.sessions: dict[tuple[str, str], ViewSession] = {}
         self.lock = threading.Lock()
+        self._starting: dict[tuple[str, str], list] = {}   # [lock, users]: one start per checkpoint at a time
         self.stopping = threading.Event()
         self._reaper: threading.Thread | None = None
 
@@ -140,6 +184,21 @@ class ViewSessions:
         not kept: ``kept`` False, closed after its view)."""
         digest = hashlib.sha256(checkpoint).hexdigest()
         key = (job_id, digest)
+        with self.lock:
+            starting = self._starting.setdefault(key, [threading.Lock(), 0])
+            starting[1] += 1
+        try:
+            with starting[0]:   # concurrent first views of a checkpoint wait for one child, not one each
+                return self._session(key, spec, checkpoint, limits, owner)
+        finally:
+            with self.lock:
+                starting[1] -= 1
+                if not starting[1]:
+                    self._starting.pop(key, None)
+
+    def _session(self, key: tuple[str, str], spec: JobSpec, checkpoint: bytes, limits: Limits,
+                 owner: str) -> tuple[ViewSession, bool]:
+        job_id, digest = key
         closing: list[ViewSession] = []
         with self.lock:
             current = self.sessions.get(key)
@@ -155,8 +214,8 @@ class ViewSessions:
                     keep = False
                     break
                 closing.append(self.sessions.pop(victim))
-        for old in closing:
-            old.close()
+        for old in closing:   # a view in flight on one finishes first
+            old.retire()
         fresh = ViewSession(job_id, digest, spec, checkpoint, limits, owner)
         fresh.kept = keep
         with self.lock:
@@ -175,7 +234,7 @@ class ViewSessions:
         with self.lock:
             if self.sessions.get((session.job_id, session.digest)) is session:
                 del self.sessions[(session.job_id, session.digest)]
-        session.close()
+        session.retire()
 
     def _reap(self) -> None:
         while not self.stopping.wait(min(5.0, self.keep_seconds / 2)):

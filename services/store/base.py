@@ -41,6 +41,12 @@ class ArtifactStore(ABC):
         """Write the whole object atomically. ``durable=False``: it need not survive a power loss
         until the next :meth:`flush` (a job's per-iteration files, made durable at checkpoints)."""
 
+    def put_file(self, key: str, handle: BinaryIO, size: int) -> None:
+        """Write the object from the first ``size`` bytes of the open file ``handle`` (a view's
+        files, written by a sandboxed child), atomically as :meth:`put`. The folder and S3 stores
+        copy it in chunks, never the whole file in memory; this default reads it whole."""
+        self.put(key, handle.read(size))
+
     @abstractmethod
     def get_versioned(self, key: str) -> tuple[bytes, str] | None:
         """The object and an opaque version (an ETag), or None."""

@@ -10,7 +10,7 @@ import json
 import os
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -28,6 +28,34 @@ def atomic_write_bytes(path: str | Path, data: bytes, *, sync: bool = True) -> P
             handle.flush()
             if sync:
                 os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+#: Bytes copied at a time by :func:`atomic_copy` (a file is never read whole into memory).
+CHUNK_BYTES = 1 << 20
+
+
+def atomic_copy(path: str | Path, handle: BinaryIO, size: int) -> Path:
+    """:func:`atomic_write_bytes` of the first ``size`` bytes of ``handle``, in chunks of
+    :data:`CHUNK_BYTES`: a file shorter than ``size`` is an ``OSError`` (nothing written)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as out:
+            left = size
+            while left:
+                chunk = handle.read(min(left, CHUNK_BYTES))
+                if not chunk:
+                    raise OSError(f"{path.name}: the file ended {left} bytes short of {size}")
+                out.write(chunk)
+                left -= len(chunk)
+            out.flush()
+            os.fsync(out.fileno())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 from services.store.base import ArtifactStore, StoreFull
-from services.store.files import atomic_write_bytes, dumps
+from services.store.files import atomic_copy, atomic_write_bytes, dumps
 
 EVENTS = "events.jsonl"
 
@@ -77,6 +77,12 @@ class FolderStore(ArtifactStore):
             raise _translated(exc, key) from exc
         if not durable:
             self._unflushed.add(path)
+
+    def put_file(self, key: str, handle: BinaryIO, size: int) -> None:
+        try:
+            atomic_copy(self.path(key), handle, size)
+        except OSError as exc:
+            raise _translated(exc, key) from exc
 
     def flush(self) -> None:
         pending, self._unflushed = self._unflushed, set()

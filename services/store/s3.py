@@ -135,7 +135,10 @@ class S3Store(ArtifactStore):
     def put(self, key: str, data: bytes, *, durable: bool = True) -> None:
         self._put(key, data, None)   # a PUT that succeeded is durable
 
-    def _put(self, key: str, data: bytes, mode: Any) -> str | None:
+    def put_file(self, key: str, handle: BinaryIO, size: int) -> None:
+        self._put(key, _chunks(handle, size), None)   # a multipart upload above 5 MiB, chunk by chunk
+
+    def _put(self, key: str, data: Any, mode: Any) -> str | None:
         ext = key.rsplit(".", 1)[-1]
         attributes: Any = {"Content-Type": CONTENT_TYPES[ext]} if ext in CONTENT_TYPES else None
         try:
@@ -301,6 +304,17 @@ class S3Store(ArtifactStore):
         if self._pool is not None:
             self._pool.shutdown(wait=False)
             self._pool = None
+
+
+def _chunks(handle: BinaryIO, size: int) -> Iterator[bytes]:
+    """The first ``size`` bytes of ``handle``, 1 MiB at a time (an ``OSError`` if it is shorter)."""
+    left = size
+    while left:
+        chunk = handle.read(min(left, 1 << 20))
+        if not chunk:
+            raise OSError(f"the file ended {left} bytes short of {size}")
+        left -= len(chunk)
+        yield chunk
 
 
 def _hidden(key: str) -> bool:

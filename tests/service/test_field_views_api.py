@@ -9,6 +9,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from harness.cluster import small_job, wait_until
+from schemas.errors import InvalidJob
 from services.settings import Settings
 
 ALICE, BOB = {"Authorization": "Bearer alice-key"}, {"Authorization": "Bearer bob-key"}
@@ -97,6 +98,7 @@ def view_png(client, url: str) -> str:
 def _fake_view(monkeypatch, tmp_path):
     """A job's files with a spec and a checkpoint, and the child's answer faked (no Mitsuba)."""
     from services.jobs import views
+    from services.jobs.view_files import write_view
     from services.store.job import JobFiles
     from services.store.local import FolderStore
 
@@ -106,7 +108,11 @@ def _fake_view(monkeypatch, tmp_path):
     rng = np.random.default_rng(0)
     arrays = {"radiance": rng.random((8, 8, 3), np.float32), "gradients": rng.normal(size=(3, 8, 8, 3)).astype(np.float32),
               "prb": rng.normal(size=(3, 8, 8, 3)).astype(np.float32)}
-    monkeypatch.setattr(views, "render_in_child", lambda *a: ({"scalars": ["a", "b", "c"], "seconds": {}}, arrays))
+    def child(spec, checkpoint, request, limits, out):   # what the child does: the files into out
+        written = write_view(out, arrays["radiance"], arrays["gradients"], arrays["prb"] if request.prb_spp else None)
+        return {"scalars": ["a", "b", "c"], "seconds": {}, **written}
+
+    monkeypatch.setattr(views, "render_in_child", child)
     return files, arrays
 
 
@@ -116,7 +122,12 @@ def test_a_view_writes_every_file_it_names(monkeypatch, tmp_path):
     from services.settings import Limits
 
     files, arrays = _fake_view(monkeypatch, tmp_path)
+    whole: list[str] = []                               # objects written from bytes in this process's memory
+    put = files.store.put
+    monkeypatch.setattr(files.store, "put", lambda key, data, **kw: (whole.append(key.rsplit("/", 1)[-1]),
+                                                                     put(key, data, **kw)))
     view_id, written, _ = create_view(files, ViewRequest(sensor=0, prb_spp=4), Limits())
+    assert whole == ["view.json"]                       # the arrays' files were copied by file
     names = sorted(written)
     assert {"radiance.npy", "radiance.png", "gradients.npy", "prb.npy", "view.json"} <= set(names)
     assert {f"gradient-{p}.png" for p in range(3)} | {f"prb-{p}.png" for p in range(3)} <= set(names)
@@ -124,6 +135,36 @@ def test_a_view_writes_every_file_it_names(monkeypatch, tmp_path):
         assert files.store.exists(files.key(f"views/{view_id}/{name}")), name
     stored = np.load(files.store.local_path(files.key(f"views/{view_id}/gradients.npy")))
     np.testing.assert_array_equal(stored, arrays["gradients"])
+    for name, size in written.items():                 # the sizes of the files copied into the store
+        assert files.store.size(files.key(f"views/{view_id}/{name}")) == size, name
+    scales = files.store.get_json(files.key(f"views/{view_id}/view.json"))["scales"]
+    assert sorted(scales) == ["0", "1", "2"]
+    _, inline, _ = create_view(files, ViewRequest(sensor=0, inline=True), Limits())
+    assert sorted(inline) == ["gradient-0.png", "gradient-1.png", "gradient-2.png", "radiance.png"]
+    assert all(data.startswith(b"\x89PNG") for data in inline.values())
+
+
+def test_a_view_reads_no_link_the_child_left(monkeypatch, tmp_path):
+    from schemas.views import ViewRequest
+    from services.jobs import views
+    from services.jobs.views import create_view
+    from services.settings import Limits
+
+    files, _ = _fake_view(monkeypatch, tmp_path)
+    secret = tmp_path / "secret.txt"
+    secret.write_text("the API's own file")
+    honest = views.render_in_child
+
+    def hostile(spec, checkpoint, request, limits, out):   # radiance.png: a link to a file of the API's
+        meta = honest(spec, checkpoint, request, limits, out)
+        (out / "radiance.png").unlink()
+        (out / "radiance.png").symlink_to(secret)
+        return meta
+
+    monkeypatch.setattr(views, "render_in_child", hostile)
+    with pytest.raises(InvalidJob, match="view child"):
+        create_view(files, ViewRequest(sensor=0), Limits())
+    assert not list(files.store.keys(files.prefix + "views/"))
 
 
 def test_a_view_over_the_jobs_disk_budget_is_refused(monkeypatch, tmp_path):

@@ -36,6 +36,21 @@ def test_get_put_exists_size_and_json(store):
     assert store.get_json("job/missing.json", default={"d": 0}) == {"d": 0}
 
 
+def test_put_file_copies_the_first_size_bytes_of_a_file_by_chunks(store, tmp_path, monkeypatch):
+    from services.store import files
+
+    monkeypatch.setattr(files, "CHUNK_BYTES", 1000)                 # several chunks for the folder store
+    data = os.urandom(6 << 20) + b"written after its size was read"   # over S3's 5 MiB: a multipart upload
+    path = tmp_path / "child-wrote.npy"
+    path.write_bytes(data)
+    with path.open("rb") as handle:
+        store.put_file("job/views/0123456789ab/radiance.npy", handle, 6 << 20)
+    assert store.get("job/views/0123456789ab/radiance.npy") == data[:6 << 20]
+    with path.open("rb") as handle, pytest.raises(OSError):         # shorter than said: nothing written
+        store.put_file("job/views/0123456789ab/short.npy", handle, len(data) + 1)
+    assert not store.exists("job/views/0123456789ab/short.npy")
+
+
 def test_json_is_written_with_non_finite_numbers_as_null(store):
     store.put_json("x.json", {"a": float("nan"), "b": [1.0, float("inf")], "c": np.float32(2)})
     assert store.get_json("x.json") == {"a": None, "b": [1.0, None], "c": 2.0}

@@ -43,3 +43,30 @@ def test_one_key_cannot_evict_another_keys_only_warm_child():
     assert sessions._evictable("alice") is None                 # nobody's only child is taken: not kept
     sessions.sessions = {("b1", "d"): held("bob", 1.0), ("b2", "d"): held("bob", 3.0)}
     assert sessions._evictable("alice") == ("b1", "d")         # bob holds both: his older one goes
+
+
+def test_a_warm_child_evicted_during_a_view_is_closed_after_it_not_under_it():
+    import threading
+
+    from services.jobs.view_sessions import ViewSession
+
+    session = ViewSession.__new__(ViewSession)     # no child: its view and close are recorded
+    session.lock, session.retired, session.closed = threading.Lock(), False, False
+    closed_during: list[bool] = []
+
+    def close():
+        closed_during.append(in_flight[0])
+        session.closed = True
+
+    in_flight = [False]
+
+    def answer(request, out):
+        in_flight[0] = True
+        session.retire()                          # another request evicts it meanwhile
+        assert not session.closed                 # the child answering is not killed under the view
+        in_flight[0] = False
+        return "viewed", {}, {}
+
+    session.close, session._view = close, answer
+    assert session.view(None, None) == ("viewed", {}, {})
+    assert closed_during == [False] and session.closed   # closed once the view let go of it
