@@ -9,7 +9,9 @@ through :class:`services.jobs.state.JobStates`. The same writer serves the worke
 
 from __future__ import annotations
 
+import base64
 import logging
+import re
 import time
 from collections.abc import Callable
 
@@ -200,6 +202,13 @@ class JobWriter:
         if data.get("poses"):   # a pose job's answer: final/poses.json, as a 4x4 matrix and the XML to paste back
             summary["poses"] = data["poses"]
             self._put(self.files.key("final/poses.json"), _json(data["poses"]), durable=True)
+        if data.get("meshes"):   # a shape job's answer: final/<shape id>.ply, and its Chamfer distance
+            summary["meshes"] = {}
+            for shape, mesh in data["meshes"].items():
+                name = "final/" + (re.sub(r"[^A-Za-z0-9_-]", "_", shape) or "mesh") + ".ply"  # an XML id may hold '/'
+
+                self._put(self.files.key(name), base64.b64decode(mesh["ply"]), durable=True)
+                summary["meshes"][shape] = {**{k: v for k, v in mesh.items() if k != "ply"}, "file": name}
         if summary["final"] is not None and summary["target"] is not None and summary["final"]:
             summary["max_abs_error"] = float(np.max(np.abs(np.asarray(summary["final"]) - np.asarray(summary["target"]))))
         self.guard()

@@ -329,6 +329,7 @@ class InverseRenderingRun:
             standard_error=None if answer.standard_error is None else listed.scalars(answer.standard_error),
             estimate_window=[answer.start, answer.end],
             estimate_error=float(np.max(np.abs(answer.values - target))) if target is not None else None,
+            shapes=prepared.problem.parameters.shape_reports(state.parameters) or None,
             **training)
 
     # -------------------------------------------------------------- reports
@@ -358,5 +359,6 @@ class InverseRenderingRun:
             outcome.stopped = asdict(state.events[-1])
         if self.parameter_set is not None and self.parameter_set.has_geometry:
             answer_values = state.answer.estimate().values if state.next_iteration > 0 else state.parameters
-            outcome.poses = self.parameter_set.pose_reports(answer_values)
+            outcome.poses = self.parameter_set.pose_reports(answer_values) or None
+            outcome.meshes = self.parameter_set.shape_reports(answer_values, final=True) or None
         return outcome

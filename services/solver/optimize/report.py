@@ -77,3 +77,5 @@ class RunOutcome:
     estimate: dict | None = None                 # how the answer was formed: kind, window
     stopped: dict | None = None                  # why the run stopped: the decision, with its reason
     poses: list[dict] | None = None              # each posed shape's answer: 4x4 matrix and XML <transform>
+    #: each optimized mesh's answer, by shape id: ``ply`` (base64 of a binary PLY), vertices, faces, chamfer
+    meshes: dict[str, dict] | None = None

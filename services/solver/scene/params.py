@@ -12,7 +12,9 @@ sampling, as in Mitsuba's ``prb``, so no derivative would reach them. A mesh's p
 (``<shape id>.to_world.translate`` / ``.rotate``, :mod:`.geometry`) is a *geometry* parameter: not
 a traverse key, its scalars move the mesh's ``vertex_positions``, and only the methods that sample
 the moving silhouettes (Mitsuba's projective integrators) differentiate it; every other method
-refuses it (``services.solver.optimize.resolve``).
+refuses it (``services.solver.optimize.resolve``). So is a mesh's shape,
+``<shape id>.vertex_positions`` (:mod:`.shape`): a traverse key, but its scalars are the
+``LargeSteps`` differential coordinates ``u`` of the vertices, not the vertices themselves.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import mitsuba as mi
 import numpy as np
 
 from services.solver.scene.geometry import POSE_KEYS, ShapePose, mesh_shapes, refusal, split_key
+from services.solver.scene.shape import ShapeMesh, shape_of
 
 Owner = Literal["bsdf", "emitter", "geometry"]
 
@@ -134,7 +137,7 @@ class ParameterSet:
     ``P x H x W x 3``).
     """
 
-    def __init__(self, params: mi.SceneParameters, keys: Sequence[str]):
+    def __init__(self, params: mi.SceneParameters, keys: Sequence[str], largesteps_lambda: float = 19.0):
         if not keys:
             raise ValueError("at least one parameter key must be selected")
         if len(set(keys)) != len(keys):
@@ -143,9 +146,15 @@ class ParameterSet:
         meshes = set(mesh_shapes(params))
         #: the meshes whose pose is optimized, by shape id (:mod:`.geometry`)
         self.poses: dict[str, ShapePose] = {}
+        #: the meshes whose vertices are optimized, by shape id (:mod:`.shape`)
+        self.shapes: dict[str, ShapeMesh] = {}
         for key in keys:
             geometry = split_key(key)
-            if geometry is not None and geometry[0] in meshes:
+            shape = shape_of(key)
+            if shape is not None and shape in meshes:
+                mesh = self.shapes[shape] = ShapeMesh.of(params, shape, largesteps_lambda)
+                allowed[key] = ParameterInfo(key, mesh.size, "geometry", "Mesh", tuple(mesh.centre))
+            elif geometry is not None and geometry[0] in meshes:
                 shape, kind = geometry
                 if shape not in self.poses:
                     self.poses[shape] = ShapePose.of(params, shape)
@@ -194,11 +203,12 @@ class ParameterSet:
 
     @property
     def has_geometry(self) -> bool:
-        """Whether a scalar moves a shape (a pose)."""
-        return bool(self.poses)
+        """Whether a scalar moves a shape (a pose, or a mesh's vertices)."""
+        return bool(self.poses or self.shapes)
 
     def _geometry_keys(self) -> set[str]:
-        return {key for key in self.keys if (split := split_key(key)) is not None and split[0] in self.poses}
+        return {key for key in self.keys if (split := split_key(key)) is not None and split[0] in self.poses
+                or self._mesh(key) is not None}
 
     @property
     def geometry(self) -> list[bool]:
@@ -215,7 +225,9 @@ class ParameterSet:
         for key, info in zip(self.keys, self.infos):
             geometry = split_key(key) if info.owner == "geometry" else None
             unit = 1.0
-            if geometry is not None:
+            if (mesh := self._mesh(key)) is not None:   # differential coordinates: in radii, as a translation
+                unit = mesh.radius or 1.0
+            elif geometry is not None:
                 radius = self.poses[geometry[0]].radius or 1.0
                 unit = radius if geometry[1] == "to_world.translate" else 180.0 / np.pi
             out += [unit] * info.size
@@ -234,24 +246,33 @@ class ParameterSet:
         """The current scalars as one float64 vector of shape ``(n,)``."""
         return np.concatenate([_as_numpy(self._get(k)) for k in self.keys])
 
+    def _mesh(self, key: str) -> ShapeMesh | None:
+        """The optimized mesh of a shape key, else None."""
+        shape = shape_of(key)
+        return self.shapes.get(shape) if shape is not None else None
+
     def _get(self, key: str):
         """The Dr.Jit value of ``key``: a traverse key's, or a pose's own (:mod:`.geometry`)."""
         geometry = split_key(key)
+        if (mesh := self._mesh(key)) is not None:
+            return mesh.value
         if geometry is not None and geometry[0] in self.poses:
             return self.poses[geometry[0]].values[geometry[1]]
         return self.params[key]
 
     def _set(self, key: str, value) -> None:
         geometry = split_key(key)
-        if geometry is not None and geometry[0] in self.poses:
+        if (mesh := self._mesh(key)) is not None:
+            mesh.value = value
+        elif geometry is not None and geometry[0] in self.poses:
             self.poses[geometry[0]].values[geometry[1]] = value
         else:
             self.params[key] = value
 
     def _update(self) -> None:
         """Move the posed meshes to their poses' values, then let Mitsuba update the scene."""
-        for pose in self.poses.values():
-            pose.write(self.params)
+        for mesh in [*self.poses.values(), *self.shapes.values()]:
+            mesh.write(self.params)
         self.params.update()
 
     def variable(self, key: str):
@@ -273,6 +294,11 @@ class ParameterSet:
     def refuse(self, before: np.ndarray, after: np.ndarray) -> str | None:
         """Why the step from ``before`` to ``after`` (flat vectors) may not be written: non-finite
         vertices or inverted triangles of a posed mesh (:func:`.geometry.refusal`); None when it may."""
+        for key, (start, stop) in self.offsets().items():
+            if (mesh := self._mesh(key)) is not None:
+                why = refusal(mesh.vertices(before[start:stop]), mesh.vertices(after[start:stop]), mesh.faces)
+                if why is not None:
+                    return f"{mesh.shape}: {why}"
         if not self.poses:
             return None
         old, new = self.poses_of(before), self.poses_of(after)
@@ -281,6 +307,22 @@ class ParameterSet:
             if why is not None:
                 return f"{shape}: {why}"
         return None
+
+    def offsets(self) -> dict[str, tuple[int, int]]:
+        """``{key: (start, stop)}``: each parameter's entries of the flat vector ``p``."""
+        ends = np.cumsum([0, *self.sizes])
+        return {key: (int(ends[i]), int(ends[i + 1])) for i, key in enumerate(self.keys)}
+
+    def shape_spans(self) -> list[tuple[int, int]]:
+        """``(start, stop)`` in ``p`` of each shape parameter (a mesh's vertices)."""
+        return [span for key, span in self.offsets().items() if self._mesh(key) is not None]
+
+    def shape_reports(self, values: np.ndarray, final: bool = False) -> dict[str, dict]:
+        """Each optimized mesh at ``values`` (:meth:`.ShapeMesh.report`; ``final``: with its PLY,
+        :meth:`.ShapeMesh.final`), by shape id."""
+        spans = self.offsets()
+        return {shape: (mesh.final if final else mesh.report)(values[slice(*spans[f"{shape}.vertex_positions"])])
+                for shape, mesh in self.shapes.items()}
 
     def pose_reports(self, values: np.ndarray) -> list[dict]:
         """Each posed mesh's pose in ``values``: its 4x4 matrix and XML (:meth:`.ShapePose.report`)."""
