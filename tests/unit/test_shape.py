@@ -203,3 +203,13 @@ def test_a_shape_job_lowers_the_chamfer_distance(tmp_path):
     assert mesh["file"] == "final/sphere.ply" and mesh["chamfer"] < distances[0]
     vertices, faces = read_ply((tmp_path / "job" / mesh["file"]).read_bytes())
     assert vertices.shape == (642, 3) and faces.shape == (1280, 3)
+
+
+def test_the_vertices_count_against_the_texel_limit_and_take_no_init(mi):
+    from services.solver.optimize.setup import check
+
+    with pytest.raises(InvalidJob, match="642 vertices"):
+        check(JobSpec.model_validate(_job()), max_texels=600)
+    assert check(JobSpec.model_validate(_job()), max_texels=642).report()["vertices"] == 642
+    with pytest.raises(InvalidJob, match="leave init"):
+        check(JobSpec.model_validate(_job(parameters=[{"key": KEY, "init": 0.5}])))

@@ -187,7 +187,8 @@ class Checked:
         parameter that is not a texture), texels (of the textures)."""
         listed = TextureReport(self.parameters)
         return {"sensors": [list(self.scene.resolution(i)) for i in range(self.scene.sensor_count)],
-                "scalars": int(listed.listed.sum()), "labels": listed.labels, "texels": listed.texels}
+                "scalars": int(listed.listed.sum()), "labels": listed.labels, "texels": listed.texels,
+                "vertices": sum(mesh.size // 3 for mesh in self.parameters.shapes.values())}
 
 
 def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None = None,
@@ -208,6 +209,11 @@ def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None
                                        f"(an RGB value counts 3; textures count by texel instead; NDRF_MAX_PARAMETERS)")
     if max_texels is not None and split.texels > max_texels:
         raise InvalidJob("parameters", f"the textures have {split.texels} texels, more than the limit of {max_texels} "
+                                       f"(NDRF_MAX_TEXELS)")
+    vertices = sum(mesh.size // 3 for mesh in parameters.shapes.values())
+    if max_texels is not None and split.texels + vertices > max_texels:
+        raise InvalidJob("parameters", f"the optimized meshes have {vertices} vertices (and the textures "
+                                       f"{split.texels} texels), more than the limit of {max_texels} together "
                                        f"(NDRF_MAX_TEXELS)")
     check_head(spec, [info.owner for info in parameters.infos])
     check_carry(spec, parameters.n, [t.key for t in split.textures])

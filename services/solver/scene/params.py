@@ -271,7 +271,9 @@ class ParameterSet:
 
     def _update(self) -> None:
         """Move the posed meshes to their poses' values, then let Mitsuba update the scene."""
-        for mesh in [*self.poses.values(), *self.shapes.values()]:
+        for pose in self.poses.values():
+            pose.write(self.params)
+        for mesh in self.shapes.values():
             mesh.write(self.params)
         self.params.update()
 

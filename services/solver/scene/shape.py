@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import base64
 from dataclasses import dataclass, field
+from typing import Any
 
 import drjit as dr
 import mitsuba as mi
@@ -52,8 +53,8 @@ class ShapeMesh:
     v0: np.ndarray
     faces: np.ndarray
     lambda_: float
-    steps: object
-    value: object = None
+    steps: Any                 # mi.ad.LargeSteps (untyped)
+    value: Any = None
     target: np.ndarray | None = field(default=None, repr=False)
 
     @classmethod
