@@ -203,6 +203,35 @@ def test_a_shape_job_lowers_the_chamfer_distance(tmp_path):
     assert mesh["file"] == "final/sphere.ply" and mesh["chamfer"] < distances[0]
     vertices, faces = read_ply((tmp_path / "job" / mesh["file"]).read_bytes())
     assert vertices.shape == (642, 3) and faces.shape == (1280, 3)
+    snapshots = sorted((tmp_path / "job" / "iterations").glob("*/meshes/sphere.ply"))   # on the image schedule
+    written = [r["iteration"] for r in records if r["images"]]
+    assert [int(p.parent.parent.name) for p in snapshots] == written and written[-1] == 7
+    assert read_ply(snapshots[-1].read_bytes())[0].shape == (642, 3)
+
+
+def test_mesh_snapshots_cross_the_sandbox_pipe():
+    """What the sandboxed child sends (PipeReporter.meshes) is what the parent's writer receives."""
+    import io
+
+    from services.jobs.child import PipeReporter
+    from services.jobs.frames import read_frame
+    from services.jobs.runner import AttemptRunner
+
+    class Writer:
+        got: list = []
+
+        def meshes(self, iteration, files):
+            self.got.append((iteration, files))
+
+    points, faces = icosphere(1)
+    data = ply_bytes(points, faces)
+    stream = io.BytesIO()
+    PipeReporter(stream).meshes(3, {"sphere": data, "other": data[:10]})
+    stream.seek(0)
+    writer = Writer()
+    while (frame := read_frame(stream)) is not None:
+        AttemptRunner._dispatch(writer, *frame)   # type: ignore[arg-type]
+    assert writer.got == [(3, {"sphere": data, "other": data[:10]})]
 
 
 def test_the_vertices_count_against_the_texel_limit_and_take_no_init(mi):

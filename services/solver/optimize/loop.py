@@ -22,6 +22,7 @@ writes a file or a job record. The CLI, the worker and the tests differ only in 
 
 from __future__ import annotations
 
+import base64
 import logging
 import time
 from dataclasses import asdict
@@ -290,6 +291,9 @@ class InverseRenderingRun:
             return None, None
         renders, gradients = render_views(prepared, built.method, fields_of(built.trainer), estimate.candidates, k,
                                           state.batch.spp, state.batch.gradient_spp, recipe.depth)
+        shapes = prepared.problem.parameters.shape_reports(state.parameters, final=True)
+        if shapes:   # each optimized mesh as a PLY snapshot
+            self.reporter.meshes(k, {shape: base64.b64decode(report["ply"]) for shape, report in shapes.items()})
         if prepared.textures:  # each texture and its gradient (a texture too), never P images
             self.reporter.textures(k, prepared.textures.images(state.parameters)
                                    | prepared.textures.gradients(estimate.dz_dp))

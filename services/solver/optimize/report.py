@@ -45,6 +45,10 @@ class RunReporter(Protocol):
         images (``<key>`` the parameters the step was taken at, ``<key>.dz_dp`` its gradient), and
         at the end (``iteration`` None: the recovered ``<key>``)."""
 
+    def meshes(self, iteration: int, files: dict[str, bytes]) -> None:
+        """A shape job's optimized meshes as PLY files, by shape id, at an iteration that writes
+        images (the mesh the step was taken at)."""
+
     def checkpoint(self, state: bytes, next_iteration: int) -> None:
         """Everything needed to continue at ``next_iteration`` (see ``optimize.checkpoint``)."""
 
