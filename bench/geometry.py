@@ -164,6 +164,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results")
     parser.add_argument("--shape", action="store_true", help="the shape case (bench.geometry_shape): "
                                                               "examples/shape.json against the LargeSteps loop")
+    parser.add_argument("--loop-guiding", default=None, help="--shape: the loop integrator's guiding "
+                                                                  "(default: Mitsuba's; 'none' as the product)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     from services.solver.backend import use_mitsuba

@@ -13,7 +13,8 @@ upwards, targets at 256 spp.
 * **tutorial loop**: Mitsuba's ``shape_optimization`` tutorial: ``mi.ad.LargeSteps`` with λ 25,
   ``mi.ad.Adam(lr=0.1, uniform=True)`` on ``u``, one step per view (the vertices written from
   ``u`` before each render), the L1 loss, ``direct_projective`` with Mitsuba's defaults, 16 spp,
-  the same targets. It runs for the product's wall-clock time of the same seed (equal compute),
+  the same targets (``--loop-guiding none``: without the guide of the indirect boundary samples,
+  as the product renders). It runs for the product's wall-clock time of the same seed (equal compute),
   at least one pass over the views; its answer is its last ``u``.
 
 Per run: the final Chamfer distance (symmetric, mean nearest-vertex distance in scene units,
@@ -64,7 +65,7 @@ def run_product(job: dict, folder: Path) -> dict:
             "optimizer": plan["recipe"]["optimizer"]}
 
 
-def run_loop(job: dict, seconds: float) -> dict:
+def run_loop(job: dict, seconds: float, guiding: str | None = None) -> dict:
     """The tutorial's loop (module docstring) for ``seconds`` of wall-clock time."""
     import drjit as dr
     import mitsuba as mi
@@ -80,7 +81,7 @@ def run_loop(job: dict, seconds: float) -> dict:
     ls = mi.ad.LargeSteps(params[key], params["sphere.faces"], LOOP_LAMBDA)
     opt = mi.ad.Adam(lr=LOOP_LR, uniform=True)
     opt["u"] = ls.to_differential(params[key])
-    integrator = mi.load_dict({"type": "direct_projective"})
+    integrator = mi.load_dict({"type": "direct_projective", **({"guiding": guiding} if guiding else {})})
     targets = {s: mi.TensorXf(np.asarray(image, np.float32)) for s, image in prepared.targets.items()}
     curve, started, it = [], time.perf_counter(), 0
     while it < 1 or time.perf_counter() - started < seconds:
@@ -95,7 +96,8 @@ def run_loop(job: dict, seconds: float) -> dict:
         it += 1
     return {"seconds": time.perf_counter() - started, "iterations": it, "chamfer": curve[-1][1],
             "best_chamfer": min(row[1] for row in curve), "curve": curve,
-            "settings": {"integrator": "direct_projective (Mitsuba's defaults)", "spp": LOOP_SPP, "lr": LOOP_LR,
+            "settings": {"integrator": f"direct_projective ({'guiding ' + guiding if guiding else 'defaults'})",
+                         "spp": LOOP_SPP, "lr": LOOP_LR,
                          "optimizer": "mi.ad.Adam(uniform=True), one step per view", "lambda": LOOP_LAMBDA,
                          "loss": "l1"}}
 
@@ -107,7 +109,7 @@ def main_shape(args, argv: list[str] | None) -> None:
         for seed in (int(s) for s in args.seeds.split(",")):
             job = shape_job(args.resolution, args.iterations, seed)
             product = run_product(copy.deepcopy(job), Path(tmp) / f"product-{seed}")
-            loop = run_loop(job, product["seconds"])
+            loop = run_loop(job, product["seconds"], args.loop_guiding)
             runs.append({"seed": seed, "product": product, "loop": loop})
             start = product["curve"][0][1] if product["curve"] else float("nan")
             rows += [[f"product ({product['method']}, {product['optimizer']} uniform)", seed, f"{start:.4f}",
@@ -124,13 +126,15 @@ def main_shape(args, argv: list[str] | None) -> None:
               "job": shape_job(args.resolution, args.iterations, 0), "machine": machine(), "runs": runs,
               "summary": summary}
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "geometry-shape-sphere.json").write_text(json.dumps(result, indent=1))
+    name = "geometry-shape-sphere" + (f"-guiding-{args.loop_guiding}" if args.loop_guiding else "")
+    (args.out / f"{name}.json").write_text(json.dumps(result, indent=1))
     table = markdown_table(["run", "seed", "Chamfer at the start", "final Chamfer", "seconds",
                             "iterations (loop: passes over the views)", "loop's best on the way"], rows)
     medians = "\n".join(f"- {who}: {s['chamfer_median']:.4f} (range {s['chamfer_range'][0]:.4f}-"
                         f"{s['chamfer_range'][1]:.4f})" for who, s in summary.items())
     text = (f"# Shape: the product's default against the tutorial loop (shape-sphere, {args.resolution}x"
             f"{args.resolution}, 6 views)\n\nEqual compute: the loop runs for the product's seconds of the same "
-            f"seed. Chamfer distance in scene units (the sphere's radius is 0.4).\n\n{table}\n\n"
+            f"seed. Chamfer distance in scene units (the sphere's radius is 0.4). The loop's integrator: "
+            f"{runs[0]['loop']['settings']['integrator']}.\n\n{table}\n\n"
             f"Medians over the seeds:\n\n{medians}\n")
-    write_markdown(args.out / "geometry-shape-sphere.md", "bench.geometry", argv, text)
+    write_markdown(args.out / f"{name}.md", "bench.geometry", argv, text)

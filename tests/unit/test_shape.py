@@ -207,6 +207,9 @@ def test_a_shape_job_lowers_the_chamfer_distance(tmp_path):
     written = [r["iteration"] for r in records if r["images"]]
     assert [int(p.parent.parent.name) for p in snapshots] == written and written[-1] == 7
     assert read_ply(snapshots[-1].read_bytes())[0].shape == (642, 3)
+    plan = json.loads((tmp_path / "job" / "plan.json").read_text())
+    assert plan["scalars"] == [] and plan["shapes"]["sphere"]["chamfer"] == pytest.approx(distances[0], rel=1e-6)
+    assert plan["recipe"]["method"] == "direct_projective" and plan["recipe"]["optimizer"] == "adam"
 
 
 def test_mesh_snapshots_cross_the_sandbox_pipe():
@@ -242,3 +245,18 @@ def test_the_vertices_count_against_the_texel_limit_and_take_no_init(mi):
     assert check(JobSpec.model_validate(_job()), max_texels=642).report()["vertices"] == 642
     with pytest.raises(InvalidJob, match="leave init"):
         check(JobSpec.model_validate(_job(parameters=[{"key": KEY, "init": 0.5}])))
+
+
+def test_per_scalar_gradient_images_of_a_shape_job_are_refused(mi):
+    from services.solver.optimize.evaluate import evaluate_gradient
+
+    with pytest.raises(InvalidJob, match="1926 for a mesh's vertices"):
+        evaluate_gradient(JobSpec.model_validate(_job()), "direct_projective", spp=1)
+
+
+def test_a_mesh_is_posed_or_reshaped_not_both(sphere):
+    from services.solver.scene.params import ParameterSet
+
+    scene, _ = sphere
+    with pytest.raises(ValueError, match="pose is optimized too"):
+        ParameterSet(scene.params, [KEY, "sphere.to_world.translate"])

@@ -29,7 +29,7 @@ import mitsuba as mi
 import numpy as np
 
 from services.solver.scene.geometry import POSE_KEYS, ShapePose, mesh_shapes, refusal, split_key
-from services.solver.scene.shape import ShapeMesh, shape_of
+from services.solver.scene.shape import MeshReports, ShapeMesh, shape_of
 
 Owner = Literal["bsdf", "emitter", "geometry"]
 
@@ -130,7 +130,7 @@ def texture_shape(value) -> tuple[int, ...] | None:
     return shape if isinstance(value, mi.TensorXf) and len(shape) == 3 else None
 
 
-class ParameterSet:
+class ParameterSet(MeshReports):
     """The ordered optimized scalars of one scene, and forward-mode AD with respect to them.
 
     ``n`` is the number of scalars, ``P`` in the shapes written elsewhere (gradient images are
@@ -170,6 +170,9 @@ class ParameterSet:
                     reason = ("is an 8-bit texture: Mitsuba keeps an 8-bit image file (PNG, JPEG) as integers, which "
                               "have no derivative; give the texture as a float image (EXR)")
                 raise ValueError(f"parameter {key!r} {reason}; optimizable keys: {', '.join(allowed) or 'none'}")
+        for shape in set(self.poses) & set(self.shapes):
+            raise ValueError(f"parameter '{shape}.vertex_positions': the mesh's pose is optimized too; its vertices "
+                             f"already move freely (optimize one or the other)")
         self.params = params
         self.keys = list(keys)
         #: the variables :meth:`tracking` enabled gradients on, by key (None outside it)
@@ -246,11 +249,6 @@ class ParameterSet:
         """The current scalars as one float64 vector of shape ``(n,)``."""
         return np.concatenate([_as_numpy(self._get(k)) for k in self.keys])
 
-    def _mesh(self, key: str) -> ShapeMesh | None:
-        """The optimized mesh of a shape key, else None."""
-        shape = shape_of(key)
-        return self.shapes.get(shape) if shape is not None else None
-
     def _get(self, key: str):
         """The Dr.Jit value of ``key``: a traverse key's, or a pose's own (:mod:`.geometry`)."""
         geometry = split_key(key)
@@ -295,7 +293,8 @@ class ParameterSet:
 
     def refuse(self, before: np.ndarray, after: np.ndarray) -> str | None:
         """Why the step from ``before`` to ``after`` (flat vectors) may not be written: non-finite
-        vertices or inverted triangles of a posed mesh (:func:`.geometry.refusal`); None when it may."""
+        vertices or inverted triangles of a posed or reshaped mesh (:func:`.geometry.refusal`); None
+        when it may."""
         for key, (start, stop) in self.offsets().items():
             if (mesh := self._mesh(key)) is not None:
                 why = refusal(mesh.vertices(before[start:stop]), mesh.vertices(after[start:stop]), mesh.faces)
@@ -309,22 +308,6 @@ class ParameterSet:
             if why is not None:
                 return f"{shape}: {why}"
         return None
-
-    def offsets(self) -> dict[str, tuple[int, int]]:
-        """``{key: (start, stop)}``: each parameter's entries of the flat vector ``p``."""
-        ends = np.cumsum([0, *self.sizes])
-        return {key: (int(ends[i]), int(ends[i + 1])) for i, key in enumerate(self.keys)}
-
-    def shape_spans(self) -> list[tuple[int, int]]:
-        """``(start, stop)`` in ``p`` of each shape parameter (a mesh's vertices)."""
-        return [span for key, span in self.offsets().items() if self._mesh(key) is not None]
-
-    def shape_reports(self, values: np.ndarray, final: bool = False) -> dict[str, dict]:
-        """Each optimized mesh at ``values`` (:meth:`.ShapeMesh.report`; ``final``: with its PLY,
-        :meth:`.ShapeMesh.final`), by shape id."""
-        spans = self.offsets()
-        return {shape: (mesh.final if final else mesh.report)(values[slice(*spans[f"{shape}.vertex_positions"])])
-                for shape, mesh in self.shapes.items()}
 
     def pose_reports(self, values: np.ndarray) -> list[dict]:
         """Each posed mesh's pose in ``values``: its 4x4 matrix and XML (:meth:`.ShapePose.report`)."""

@@ -110,6 +110,40 @@ class ShapeMesh:
         return {**self.report(u), "ply": base64.b64encode(ply_bytes(self.vertices(u), self.faces)).decode("ascii")}
 
 
+class MeshReports:
+    """What :class:`~services.solver.scene.params.ParameterSet` says of its optimized meshes (a
+    mixin over its ``keys``, ``sizes`` and ``shapes``): where each parameter sits in the flat
+    vector ``p`` and each mesh at a given ``p``."""
+
+    keys: list[str]
+    shapes: dict[str, ShapeMesh]
+
+    @property
+    def sizes(self) -> list[int]:
+        raise NotImplementedError
+
+    def _mesh(self, key: str) -> ShapeMesh | None:
+        """The optimized mesh of a shape key, else None."""
+        shape = shape_of(key)
+        return self.shapes.get(shape) if shape is not None else None
+
+    def offsets(self) -> dict[str, tuple[int, int]]:
+        """``{key: (start, stop)}``: each parameter's entries of the flat vector ``p``."""
+        ends = np.cumsum([0, *self.sizes])
+        return {key: (int(ends[i]), int(ends[i + 1])) for i, key in enumerate(self.keys)}
+
+    def shape_spans(self) -> list[tuple[int, int]]:
+        """``(start, stop)`` in ``p`` of each shape parameter (a mesh's vertices)."""
+        return [span for key, span in self.offsets().items() if self._mesh(key) is not None]
+
+    def shape_reports(self, values: np.ndarray, final: bool = False) -> dict[str, dict]:
+        """Each optimized mesh at ``values`` (:meth:`.ShapeMesh.report`; ``final``: with its PLY,
+        :meth:`.ShapeMesh.final`), by shape id."""
+        spans = self.offsets()
+        return {shape: (mesh.final if final else mesh.report)(values[slice(*spans[f"{shape}.vertex_positions"])])
+                for shape, mesh in self.shapes.items()}
+
+
 def chamfer(a: np.ndarray, b: np.ndarray) -> float:
     """The symmetric Chamfer distance of two point sets ``a`` ``(N, 3)`` and ``b`` ``(M, 3)``: the
     mean over ``a`` of the distance to the nearest point of ``b`` and the same from ``b``,
