@@ -186,9 +186,10 @@ def test_the_gradient_matches_finite_differences(mi, sphere):
 def test_a_shape_job_lowers_the_chamfer_distance(tmp_path):
     """The default shape job (auto: direct_projective, uniform Adam) on ``shape-sphere`` at 16x16:
     the Chamfer distance to the target falls by a fifth or more over 8 iterations (measured: 0.047
-    to 0.028; the answer, averaged over its window, 0.031), and the final mesh is written as ``final/sphere.ply`` with the
-    mesh's 642 vertices.
-    Failed (0.047 rising to 0.125) with the steps' sign reversed. About 7 s."""
+    to 0.028; the answer, averaged over its window, 0.031); the final mesh is written as
+    ``final/sphere.ply`` with the mesh's 642 vertices, and a snapshot with each iteration's images
+    (``iterations/<k>/meshes/sphere.ply``). Failed (0.047 rising to 0.125) with the steps' sign
+    reversed, and without the snapshots when the loop did not report them. About 7 s."""
     import json
 
     from services.jobs.local import run_local

@@ -40,8 +40,9 @@ def test_a_mismatched_source_is_refused_naming_the_mismatch(change, named):
 
 def test_without_warm_start_the_fingerprint_is_unchanged():
     """Checkpoints and idempotency keys of jobs written before the field (and the later ``stop``,
-    ``textures.resolution``, ``geometry`` and ``targets.synthetic.meshes``) keep matching: the hash of the fields the job had then, and the
-    value the version before those fields computed for this job."""
+    ``textures.resolution``, ``geometry`` and ``targets.synthetic.meshes``) keep matching: the hash
+    of the fields the job had then, and the value the version before those fields computed for
+    this job."""
     import hashlib
 
     spec = JobSpec.model_validate(small_job("ndrf-lhs"))
