@@ -2,6 +2,9 @@
 
 ``python -m bench.geometry [--mesh PLY] [--resolution 64] [--seeds 0,1,2] [--iterations 20]``
 
+(``--shape``: a mesh's shape instead, against the shape-optimization tutorial loop:
+:mod:`bench.geometry_shape`.)
+
 The problem (issue 34): a mesh on a floor under an area light, two views, the targets rendered
 with every bounce (256 spp), and a pose 0.06 off in translation (``[0.042, 0, -0.042]``) and 15
 degrees about the vertical axis. ``--mesh`` names a PLY (the issue's bunny); without it the
@@ -159,11 +162,20 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--iterations", type=int, default=20, help="the product's iterations")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results")
+    parser.add_argument("--shape", action="store_true", help="the shape case (bench.geometry_shape): "
+                                                              "examples/shape.json against the LargeSteps loop")
+    parser.add_argument("--loop-guiding", default=None, help="--shape: the loop integrator's guiding "
+                                                                  "(default: Mitsuba's; 'none' as the product)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     from services.solver.backend import use_mitsuba
 
     use_mitsuba()
+    if args.shape:
+        from bench.geometry_shape import main_shape
+
+        main_shape(args, argv)
+        return
     name = "pose-block" if args.mesh is None else args.mesh.stem
     runs: list[dict] = []
     rows: list[list] = []

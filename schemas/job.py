@@ -81,12 +81,39 @@ class ParameterSpec(_Strict):
 
 # ---------------------------------------------------------------------------------- targets
 
+class TargetMesh(_Strict):
+    """A shape job's synthetic target: the shape's own mesh deformed about the centre of its
+    bounding box (same vertices and triangles, so the Chamfer distance compares like with like)."""
+
+    scale: tuple[float, float, float] = Field((1.0, 1.0, 1.0), description="Scaling per axis (x, y, z), applied "
+                                                                          "after the bump; each in [0.1, 10].")
+    bump: float = Field(0.0, ge=-1.0, le=1.0, description="Height of a smooth radial bump, in radii of the shape "
+                                                          "(its farthest vertex from the centre); 0: none.")
+    bump_direction: tuple[float, float, float] = Field((0.0, 1.0, 0.0), description="Where the bump points from "
+                                                                                    "the centre (any length).")
+    bump_width: float = Field(0.5, ge=0.05, le=3.0, description="Angular width of the bump in radians: a vertex at "
+                                                                "angle a from its direction moves out by "
+                                                                "bump x radius x exp(-(a / width)^2).")
+
+    @field_validator("scale")
+    @classmethod
+    def _scale(cls, scale):
+        if not all(0.1 <= s <= 10.0 for s in scale):
+            raise ValueError(f"scale must lie in [0.1, 10] per axis, got {list(scale)}")
+        return scale
+
+
 class SyntheticTarget(_Strict):
     """Render the target from the same scene with known parameter values."""
 
     values: dict[str, Scalars | None] = Field(
         description="Parameter values of the target, by key (as a parameter's init); null: the scene's own value "
-                    "(for a texture, the scene file's texture: the usual synthetic texture target).")
+                    "(for a texture, the scene file's texture: the usual synthetic texture target). A shape "
+                    "parameter (<shape id>.vertex_positions) takes its target from meshes instead.")
+    meshes: dict[str, TargetMesh] = Field(
+        default_factory=dict, max_length=16,
+        description="Target shapes of shape parameters, by shape id: the target is rendered with the shape's mesh "
+                    "deformed (TargetMesh), and the records report the Chamfer distance to it.")
     spp: int = Field(256, ge=1, le=65536, description="Samples per pixel of the target rendering.")
     max_depth: int | None = Field(
         None, ge=1, le=1024, description="Path depth of the target rendering. Default: unbounded, paths ended "
@@ -189,6 +216,20 @@ class EffectOverrides(_Strict):
                                                      "without training for them.")
     merge_channels: bool = Field(True, description="Carry only the RGB channels a scalar can change in dL_theta "
                                                    "(an RGB albedo component changes one channel).")
+
+
+# --------------------------------------------------------------------------------- geometry
+
+class GeometrySettings(_Strict):
+    """How shape parameters (``<shape id>.vertex_positions``) are optimized (ignored by jobs
+    without one; ``services.solver.scene.shape``)."""
+
+    largesteps_lambda: float = Field(
+        19.0, ge=0.0, le=1e4, description="λ of the LargeSteps parameterization (Nicolet et al. 2021, Mitsuba's "
+                                          "mi.ad.LargeSteps): the optimizer steps u = (I + λ L) v, L the mesh's "
+                                          "Laplacian, and the vertices are v = (I + λ L)^-1 u, so a gradient on a few "
+                                          "silhouette vertices moves their neighbourhood smoothly. Larger: smoother "
+                                          "steps (raise it with the mesh's resolution); 0: the vertices themselves.")
 
 
 # --------------------------------------------------------------------------------- textures
@@ -324,6 +365,8 @@ class JobSpec(_Strict):
     effects: EffectOverrides = Field(default_factory=EffectOverrides, description="Overrides of `choose_effects`.")
     textures: TextureSettings = Field(default_factory=TextureSettings,
                                       description="Regularization of texture parameters (a bitmap's data).")
+    geometry: GeometrySettings = Field(default_factory=GeometrySettings,
+                                       description="Optimization of shape parameters (a mesh's vertices).")
     stop: StopSettings = Field(default_factory=StopSettings,
                                description="When the run ends before iterations: at a requested standard error, or "
                                            "when more iterations would not improve the answer.")
@@ -345,13 +388,17 @@ class JobSpec(_Strict):
     def fingerprint(self) -> str:
         """Hash of everything that changes the computation (not the name): a checkpoint is only
         loaded into the job it belongs to, and an Idempotency-Key only returns the same job. A job
-        without ``warm_start``, with the default ``stop`` and ``textures.resolution``, hashes as
-        before those fields existed."""
+        without ``warm_start``, with the default ``stop``, ``textures.resolution`` and ``geometry``
+        and no target meshes, hashes as before those fields existed."""
         exclude: dict = {"name": True} if self.warm_start is not None else {"name": True, "warm_start": True}
         if self.stop == StopSettings():      # later fields, at their defaults, hash as before they existed
             exclude["stop"] = True
         if self.textures.resolution == "auto":
             exclude["textures"] = {"resolution"}
+        if self.geometry == GeometrySettings():
+            exclude["geometry"] = True
+        if isinstance(self.targets, SyntheticTargets) and not self.targets.synthetic.meshes:
+            exclude["targets"] = {"synthetic": {"meshes"}}
         return hashlib.sha256(self.model_dump_json(exclude=exclude).encode()).hexdigest()[:16]
 
     @field_validator("adam_betas")
@@ -367,9 +414,14 @@ class JobSpec(_Strict):
         if len(set(keys)) != len(keys):
             raise ValueError(f"parameter keys must be unique, got {keys}")
         if isinstance(self.targets, SyntheticTargets):
-            missing = [k for k in keys if k not in self.targets.synthetic.values]
+            meshes = self.targets.synthetic.meshes
+            missing = [k for k in keys if k not in self.targets.synthetic.values
+                       and not (k.endswith(".vertex_positions") and k[:-len(".vertex_positions")] in meshes)]
             if missing:
                 raise ValueError(f"targets.synthetic.values has no value for {missing}")
+            unused = [s for s in meshes if f"{s}.vertex_positions" not in keys]
+            if unused:
+                raise ValueError(f"targets.synthetic.meshes names {unused}, whose vertex_positions are not parameters")
         if self.optimizer in SECOND_ORDER and self.loss != "l2":
             raise ValueError(f"optimizer {self.optimizer!r} models the l2 loss; got loss {self.loss!r}")
         if self.hessian != "successive" and self.optimizer == "adam":

@@ -112,6 +112,11 @@ class IterationRecord(BaseModel):
                           "updated_parameters or dz_dp): shape, mean per channel, min, max of the parameters the "
                           "step was taken at, gradient_rms of dz/dp and, for synthetic targets, rmse and psnr (dB) "
                           "against the target texture.")
+    shapes: dict[str, dict[str, Any]] | None = Field(
+        None, description="Per optimized mesh, by shape id (shape jobs only; its vertices are not in parameters, "
+                          "updated_parameters or dz_dp): vertices, faces and, with a synthetic target mesh, chamfer, "
+                          "the symmetric Chamfer distance (scene units) of the vertices the step was taken at to the "
+                          "target's.")
     preview_scales: list[float] | None = Field(None, description="Value of full red in each gradient preview.")
 
 

@@ -21,4 +21,7 @@ BUILTIN_SCENES: dict[str, str] = {
                       "acting through interreflection.",
     "pose-block": "A block (a generated mesh, 8 shared corners) on a floor under an area light, seen by 2 cameras "
                   "of 32x32: geometry, the block's pose (block.to_world.translate, block.to_world.rotate).",
+    "shape-sphere": "A sphere (a generated icosphere, 642 vertices) under a constant sky and an area light, seen by "
+                    "6 cameras of 32x32 around it: geometry, the sphere's shape (sphere.vertex_positions) recovered "
+                    "towards a deformed target (targets.synthetic.meshes).",
 }

@@ -29,8 +29,9 @@ class Limits(BaseSettings):
     spp: int = Field(4096, ge=1, description="Largest samples per pixel of any rendering in a job.")
     iterations: int = Field(2000, ge=1, description="Most iterations of one job.")
     parameters: int = Field(64, ge=1, description="Most optimized scalars (an RGB value counts 3) outside textures.")
-    texels: int = Field(4 << 20, ge=1, description="Most texels of a job's texture parameters, all together (a "
-                                                   "texel of an RGB texture holds 3 scalars).")
+    texels: int = Field(4 << 20, ge=1, description="Most texels of a job's texture parameters and vertices of its "
+                                                   "optimized meshes, all together (an RGB texel and a vertex each "
+                                                   "hold 3 scalars).")
     upload_bytes: int = Field(64 << 20, ge=1024, description="Largest request body.")
     body_memory_bytes: int = Field(64 << 20, ge=1 << 20, le=1 << 40,
                                    description="Most request-body bytes one API process holds at once, all requests "

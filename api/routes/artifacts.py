@@ -27,7 +27,7 @@ router = APIRouter(route_class=GuardedRoute, prefix="/v1/jobs/{job_id}", tags=["
                    responses={401: {"model": ProblemDetails}, 404: {"model": ProblemDetails}})
 
 Iteration = Annotated[int, PathParam(ge=0, le=10**7, description="0-based iteration index.")]
-PNG, NPY, EXR = "image/png", "application/x-npy", "image/x-exr"
+PNG, NPY, EXR, PLY = "image/png", "application/x-npy", "image/x-exr", "application/x-ply"
 CHUNK = 1 << 16
 
 
@@ -162,19 +162,23 @@ def gradients_stack(job_id: str, k: Iteration, runtime: RuntimeDep, caller: Read
 
 #: ``<key>.npy|exr|png`` or ``<key>.dz_dp.npy|exr|png`` of a texture parameter (Mitsuba keys: letters, digits,
 #: ``_.-``).
-_TEXTURE = re.compile(r"^([A-Za-z0-9_][A-Za-z0-9_.\-]{0,255})\.(png|npy|exr)$")
-_TEXTURE_MEDIA = {"png": PNG, "npy": NPY, "exr": EXR}
+_TEXTURE = re.compile(r"^([A-Za-z0-9_][A-Za-z0-9_.\-]{0,255})\.(png|npy|exr|ply)$")
+_TEXTURE_MEDIA = {"png": PNG, "npy": NPY, "exr": EXR, "ply": PLY}
+#: ``<shape id>.ply`` of an optimized mesh (the id as the writer names files: letters, digits, ``_-``).
+_MESH = re.compile(r"^([A-Za-z0-9_-]{1,255})\.ply$")
 TextureName = Annotated[str, PathParam(description="'<key>.npy' (float32 H x W x C), '<key>.exr' (the same values, "
                                                    "OpenEXR 32-bit float) or '<key>.png' (preview) of a texture "
                                                    "parameter, e.g. 'wall.reflectance.data.npy'; per iteration also "
-                                                   "'<key>.dz_dp.npy|exr|png', its gradient.")]
+                                                   "'<key>.dz_dp.npy|exr|png', its gradient; at the end also "
+                                                   "'<shape id>.ply', a shape parameter's recovered mesh.")]
 
 
 def _texture(files: JobFiles, k: int | None, name: str):
     match = _TEXTURE.match(name)
     if match is None or ".." in name:
-        raise ProblemError(422, "Invalid request", "name must be '<texture key>.npy', '.exr' or '.png'",
-                           slug="invalid-request", errors=[("name", "expected <key>.npy, <key>.exr or <key>.png")])
+        raise ProblemError(422, "Invalid request", "name must be '<texture key>.npy', '.exr' or '.png' (or "
+                                                   "'<shape id>.ply')", slug="invalid-request",
+                           errors=[("name", "expected <key>.npy, <key>.exr, <key>.png or <shape id>.ply")])
     key = files.texture_key(k, match.group(1)) + "." + match.group(2)
     what = f"texture {match.group(1)}" + ("" if k is None else f" of iteration {k}")
     if not files.store.exists(key):
@@ -182,10 +186,11 @@ def _texture(files: JobFiles, k: int | None, name: str):
     return send(files, key, _TEXTURE_MEDIA[match.group(2)], what, filename=None if match.group(2) == "png" else name)
 
 
-@router.get("/final/{name}", summary="A recovered texture",
-            responses={200: {"content": {PNG: {}, NPY: {}, EXR: {}}}})
+@router.get("/final/{name}", summary="A recovered texture or mesh",
+            responses={200: {"content": {PNG: {}, NPY: {}, EXR: {}, PLY: {}}}})
 def final_texture(job_id: str, runtime: RuntimeDep, caller: ReaderDep, name: TextureName):
-    """A texture parameter's recovered value (written at the end; summary.json names the files)."""
+    """A texture parameter's recovered value, or a shape parameter's recovered mesh as PLY (written
+    at the end; summary.json names the files)."""
     return _texture(runtime.service.files(job_id, caller), None, name)
 
 
@@ -194,6 +199,22 @@ def final_texture(job_id: str, runtime: RuntimeDep, caller: ReaderDep, name: Tex
 def iteration_texture(job_id: str, k: Iteration, runtime: RuntimeDep, caller: ReaderDep, name: TextureName):
     """A texture parameter at iteration ``k`` and its gradient (written with the iteration's images)."""
     return _texture(runtime.service.files(job_id, caller), k, name)
+
+
+@router.get("/iterations/{k}/meshes/{name}", summary="A mesh at an iteration",
+            responses={200: {"content": {PLY: {}}}})
+def iteration_mesh(job_id: str, k: Iteration, runtime: RuntimeDep, caller: ReaderDep,
+                   name: Annotated[str, PathParam(description="'<shape id>.ply': a shape parameter's mesh at the "
+                                                              "iteration (written with its images).")]):
+    """A shape parameter's mesh at iteration ``k``, binary PLY (written with the iteration's images)."""
+    files = runtime.service.files(job_id, caller)
+    if _MESH.match(name) is None:
+        raise ProblemError(422, "Invalid request", "name must be '<shape id>.ply'", slug="invalid-request",
+                           errors=[("name", "expected <shape id>.ply")])
+    key = files.iteration_key(k, f"meshes/{name}")
+    if not files.store.exists(key):
+        raise _missing(f"mesh {name} of iteration {k}")
+    return send(files, key, PLY, f"mesh {name} of iteration {k}", filename=f"{job_id}-{k}-{name}")
 
 
 Sensor = Annotated[int, PathParam(ge=0, le=64, description="Sensor index.")]

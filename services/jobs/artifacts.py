@@ -9,7 +9,9 @@ through :class:`services.jobs.state.JobStates`. The same writer serves the worke
 
 from __future__ import annotations
 
+import base64
 import logging
+import re
 import time
 from collections.abc import Callable
 
@@ -161,6 +163,12 @@ class JobWriter:
             png = gradient_png(rgb)[0] if name.endswith(".dz_dp") else srgb_png(rgb)
             self._put(key + ".png", png, durable=iteration is None)
 
+    def meshes(self, iteration: int, files: dict[str, bytes]) -> None:
+        """Each optimized mesh as ``iterations/<k>/meshes/<shape id>.ply``."""
+        self.guard()
+        for shape, data in sorted(files.items()):
+            self._put(self.files.iteration_key(iteration, f"meshes/{mesh_name(shape)}.ply"), data, durable=False)
+
     def checkpoint(self, state: bytes, next_iteration: int) -> None:
         self.guard()
         self.files.store.flush()   # every record a resume from this checkpoint keeps is durable first
@@ -203,6 +211,13 @@ class JobWriter:
         if data.get("poses"):   # a pose job's answer: final/poses.json, as a 4x4 matrix and the XML to paste back
             summary["poses"] = data["poses"]
             self._put(self.files.key("final/poses.json"), _json(data["poses"]), durable=True)
+        if data.get("meshes"):   # a shape job's answer: final/<shape id>.ply, and its Chamfer distance
+            summary["meshes"] = {}
+            for shape, mesh in data["meshes"].items():
+                name = f"final/{mesh_name(shape)}.ply"
+
+                self._put(self.files.key(name), base64.b64decode(mesh["ply"]), durable=True)
+                summary["meshes"][shape] = {**{k: v for k, v in mesh.items() if k != "ply"}, "file": name}
         if summary["final"] is not None and summary["target"] is not None and summary["final"]:
             summary["max_abs_error"] = float(np.max(np.abs(np.asarray(summary["final"]) - np.asarray(summary["target"]))))
         self.guard()
@@ -231,6 +246,11 @@ class JobWriter:
         self.states.transition(self.job_id, status, fence=self.attempt, expect={JobStatus.RUNNING},
                                error=data.get("error"), field=data.get("field"))
         return status
+
+
+def mesh_name(shape: str) -> str:
+    """A shape id as a file name (an XML id may hold '/' or '.')."""
+    return re.sub(r"[^A-Za-z0-9_-]", "_", shape) or "mesh"
 
 
 def _json(value) -> bytes:

@@ -66,6 +66,10 @@ class PipeReporter:
         write_frame(self.stream, "textures", {"iteration": iteration, "names": sorted(images)},
                     {f"texture-{i}": array_bytes(images[name]) for i, name in enumerate(sorted(images))})
 
+    def meshes(self, iteration, files):
+        write_frame(self.stream, "meshes", {"iteration": iteration, "names": sorted(files)},
+                    {f"mesh-{i}": files[name] for i, name in enumerate(sorted(files))})
+
     def checkpoint(self, state, next_iteration):
         write_frame(self.stream, "checkpoint", {"next_iteration": next_iteration}, {"state": state})
 

@@ -280,6 +280,9 @@ class AttemptRunner:
             names = [str(name) for name in meta["names"]]
             iteration = None if meta["iteration"] is None else int(meta["iteration"])
             writer.textures(iteration, {name: array_from(blobs[f"texture-{i}"], ndim=3) for i, name in enumerate(names)})
+        elif kind == "meshes":
+            names = [str(name) for name in meta["names"]]
+            writer.meshes(int(meta["iteration"]), {name: bytes(blobs[f"mesh-{i}"]) for i, name in enumerate(names)})
         elif kind == "checkpoint":
             writer.checkpoint(blobs["state"], int(meta["next_iteration"]))
         else:

@@ -39,13 +39,15 @@ def test_a_mismatched_source_is_refused_naming_the_mismatch(change, named):
 
 
 def test_without_warm_start_the_fingerprint_is_unchanged():
-    """Checkpoints and idempotency keys of jobs written before the field (and the later ``stop``
-    and ``textures.resolution``) keep matching: the hash of the fields the job had then, and the
-    value the version before those fields computed for this job."""
+    """Checkpoints and idempotency keys of jobs written before the field (and the later ``stop``,
+    ``textures.resolution``, ``geometry`` and ``targets.synthetic.meshes``) keep matching: the hash
+    of the fields the job had then, and the value the version before those fields computed for
+    this job."""
     import hashlib
 
     spec = JobSpec.model_validate(small_job("ndrf-lhs"))
-    before = {"name": True, "warm_start": True, "stop": True, "textures": {"resolution"}}
+    before = {"name": True, "warm_start": True, "stop": True, "textures": {"resolution"}, "geometry": True,
+              "targets": {"synthetic": {"meshes"}}}
     old = hashlib.sha256(spec.model_dump_json(exclude=before).encode()).hexdigest()[:16]
     assert spec.fingerprint() == old == "f5065dd0afb6bd96" != _spec().fingerprint()
     assert JobSpec.model_validate(small_job("ndrf-lhs", stop={"standard_error": 0.01})).fingerprint() != old

@@ -113,6 +113,9 @@ class BackgroundReporter:
     def textures(self, iteration: int | None, images: dict[str, np.ndarray]) -> None:
         self._submit("textures", iteration, images)
 
+    def meshes(self, iteration: int, files: dict[str, bytes]) -> None:
+        self._submit("meshes", iteration, files)
+
     def checkpoint(self, state: bytes, next_iteration: int) -> None:
         self._submit("checkpoint", state, next_iteration)
         self.flush()

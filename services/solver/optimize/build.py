@@ -18,6 +18,7 @@ from services.solver.estimators.methods import GradientMethod, make_method
 from services.solver.estimators.methods.prb import Prb, channel_groups
 from services.solver.fields.field import NeuralField
 from services.solver.optimize.optimizers import ParameterOptimizer, make_optimizer
+from services.solver.optimize.optimizers.adam import Adam
 from services.solver.optimize.recipe import Recipe
 from services.solver.optimize.setup import Prepared
 from services.solver.training.trainer import FieldTrainer
@@ -77,6 +78,8 @@ def build(prepared: Prepared, recipe: Recipe) -> Built:
                                views=len(prepared.targets))
     if recipe.step_units:
         optimizer.units = np.asarray(recipe.step_units, np.float64)
+    if recipe.uniform and isinstance(optimizer, Adam):
+        optimizer.uniform = recipe.uniform
     return Built(method, trainer, jacobian_method, optimizer)
 
 

@@ -46,6 +46,10 @@ def evaluate_gradient(spec: JobSpec, method_name: str, *, spp: int, train_steps:
         raise InvalidJob("parameters", f"the gradient images are one per scalar, {problem.parameters.n} for a texture "
                                        f"job: run the job instead (ndrf run); its images iterations write "
                                        f"textures/<key>.dz_dp.npy, the gradient as a texture")
+    if problem.parameters.shapes:
+        raise InvalidJob("parameters", f"the gradient images are one per scalar, {problem.parameters.n} for a mesh's "
+                                       f"vertices: run the job instead (ndrf run); its records give the Chamfer "
+                                       f"distance and its images iterations the mesh (meshes/<shape id>.ply)")
     method = make_method(method_name, problem.effects, recipe.depth)
     steps = spec.training.warmup_steps if train_steps is None else train_steps
 

@@ -167,7 +167,7 @@ def render_view(restored: Restored, request: ViewRequest) -> FieldView:
     base = restored.problem
     camera, described = camera_for(base.scene, request, restored.spec.render.resolution)
     scene = with_cameras(base.scene, [camera])
-    parameters = ParameterSet(scene.params, base.parameters.keys)
+    parameters = ParameterSet(scene.params, base.parameters.keys, restored.spec.geometry.largesteps_lambda)
     problem = dataclasses.replace(base, scene=scene, parameters=parameters, sanitized={})
     problem.layout = base.layout
     parameters.assign(restored.values)

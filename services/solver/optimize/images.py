@@ -56,9 +56,10 @@ def render_views(prepared, method: GradientMethod, fields: Fields, candidates: d
     """The candidate ``(H, W, 3)`` and the gradient images ``(P, H, W, 3)`` of every view at the
     current parameters (``candidates`` holds those the iteration rendered already). A job with a
     texture parameter writes no gradient images (P of them would be one per texel): its gradient
-    is written as a texture instead (:mod:`.textures`); ``gradients`` is then empty."""
+    is written as a texture instead (:mod:`.textures`); ``gradients`` is then empty, as for a
+    shape parameter (one image per vertex coordinate)."""
     spec, problem = prepared.spec, prepared.problem
-    per_scalar = not problem.parameters.has_textures
+    per_scalar = not problem.parameters.has_textures and not problem.parameters.shapes
     renders, gradients = {}, {}
     for sensor in sorted(prepared.targets):
         seed = derive_seed(spec.seed, "images", k, sensor)
@@ -83,7 +84,7 @@ def silhouette_views(prepared, current: np.ndarray, cache: dict[int, np.ndarray]
     target values, the parameters then put back)."""
     problem = prepared.problem
     params, scene = problem.parameters, problem.scene
-    shapes = sorted(params.poses)
+    shapes = sorted(set(params.poses) | set(params.shapes))   # posed or reshaped meshes
     if not cache and prepared.target_values is not None:
         params.assign(prepared.target_values)
         try:

@@ -22,6 +22,7 @@ writes a file or a job record. The CLI, the worker and the tests differ only in 
 
 from __future__ import annotations
 
+import base64
 import logging
 import time
 from dataclasses import asdict
@@ -292,6 +293,9 @@ class InverseRenderingRun:
             return None, None, None
         renders, gradients = render_views(prepared, built.method, fields_of(built.trainer), estimate.candidates, k,
                                           state.batch.spp, state.batch.gradient_spp, recipe.depth)
+        shapes = prepared.problem.parameters.shape_reports(state.parameters, final=True)
+        if shapes:   # each optimized mesh as a PLY snapshot
+            self.reporter.meshes(k, {shape: base64.b64decode(report["ply"]) for shape, report in shapes.items()})
         if prepared.textures:  # each texture and its gradient (a texture too), never P images
             self.reporter.textures(k, prepared.textures.images(state.parameters)
                                    | prepared.textures.gradients(estimate.dz_dp))
@@ -334,6 +338,7 @@ class InverseRenderingRun:
             standard_error=None if answer.standard_error is None else listed.scalars(answer.standard_error),
             estimate_window=[answer.start, answer.end],
             estimate_error=float(np.max(np.abs(answer.values - target))) if target is not None else None,
+            shapes=prepared.problem.parameters.shape_reports(state.parameters) or None,
             **training)
 
     # -------------------------------------------------------------- reports
@@ -363,5 +368,6 @@ class InverseRenderingRun:
             outcome.stopped = asdict(state.events[-1])
         if self.parameter_set is not None and self.parameter_set.has_geometry:
             answer_values = state.answer.estimate().values if state.next_iteration > 0 else state.parameters
-            outcome.poses = self.parameter_set.pose_reports(answer_values)
+            outcome.poses = self.parameter_set.pose_reports(answer_values) or None
+            outcome.meshes = self.parameter_set.shape_reports(answer_values, final=True) or None
         return outcome

@@ -129,6 +129,9 @@ class Recipe:
     #: per scalar, one unit of the optimizer's steps in the scalar's own units (empty: all 1;
     #: a rotation's, :meth:`services.solver.scene.params.ParameterSet.step_units`)
     step_units: tuple[float, ...] = ()
+    #: spans ``(start, stop)`` of ``p`` whose Adam steps share one scale (a mesh's vertices:
+    #: :class:`~services.solver.optimize.optimizers.adam.Adam`'s ``uniform``)
+    uniform: tuple[tuple[int, int], ...] = ()
 
     def to_json(self) -> dict:
         return {"method": self.method, "optimizer": self.steps.optimizer, "jacobian": self.jacobian,
@@ -139,5 +142,5 @@ class Recipe:
                 "curvature": self.steps.curvature if self.steps.second_order else None,
                 "stop": asdict(self.stop), "texture_blocks": dict(self.texture_blocks),
                 "fields": {"radiance": self.radiance, "differential": self.differential},
-                "step_units": list(self.step_units) or None,
+                "step_units": list(self.step_units) or None, "uniform": [list(s) for s in self.uniform] or None,
                 "decisions": [asdict(d) for d in self.decisions], "warnings": list(self.warnings)}

@@ -46,6 +46,10 @@ class RunReporter(Protocol):
         images (``<key>`` the parameters the step was taken at, ``<key>.dz_dp`` its gradient), and
         at the end (``iteration`` None: the recovered ``<key>``)."""
 
+    def meshes(self, iteration: int, files: dict[str, bytes]) -> None:
+        """A shape job's optimized meshes as PLY files, by shape id, at an iteration that writes
+        images (the mesh the step was taken at)."""
+
     def checkpoint(self, state: bytes, next_iteration: int) -> None:
         """Everything needed to continue at ``next_iteration`` (see ``optimize.checkpoint``)."""
 
@@ -78,3 +82,5 @@ class RunOutcome:
     estimate: dict | None = None                 # how the answer was formed: kind, window
     stopped: dict | None = None                  # why the run stopped: the decision, with its reason
     poses: list[dict] | None = None              # each posed shape's answer: 4x4 matrix and XML <transform>
+    #: each optimized mesh's answer, by shape id: ``ply`` (base64 of a binary PLY), vertices, faces, chamfer
+    meshes: dict[str, dict] | None = None

@@ -38,6 +38,10 @@ samples per pixel). The rules and what they rest on (``bench/results/``):
   :data:`GEOMETRY_SPP` spp per iteration (the boundary term at 1 spp is noise; Mitsuba's pose
   tutorial renders 16), and steps measured in the shape's size (:meth:`ParameterSet.step_units
   <services.solver.scene.params.ParameterSet.step_units>`: a degree is not a scene unit).
+* **A shape** (a mesh's vertices in LargeSteps coordinates, :mod:`services.solver.scene.shape`):
+  the same methods, views and samples; Adam with one step scale per mesh (``uniform``, as
+  Mitsuba's shape tutorial): its ``3 N`` scalars would take one forward render each for a
+  Jacobian, and per-entry scales would undo the parameterization's smoothing.
 """
 
 from __future__ import annotations
@@ -48,7 +52,7 @@ from typing import Protocol
 import numpy as np
 
 from schemas.errors import InvalidJob
-from schemas.job import JobSpec
+from schemas.job import SECOND_ORDER, JobSpec
 from schemas.methods import AUTO, Method
 from services.solver.estimators.layout import DerivativeLayout
 from services.solver.estimators.methods import make_method, method_class
@@ -131,6 +135,9 @@ class Parameters(Protocol):
     def step_units(self) -> np.ndarray:
         """Per scalar: one unit of the optimizer's steps, in the scalar's own units."""
 
+    def shape_spans(self) -> list[tuple[int, int]]:
+        """``(start, stop)`` of each shape parameter (a mesh's vertices) in ``p``."""
+
     @property
     def sizes(self) -> list[int]: ...
 
@@ -192,7 +199,9 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
                "a pose's steps are measured in its shape's size: a translation in the shape's radius, a rotation in "
                "radians (which move its farthest vertex by one radius), so that the learning rate and the trust "
                "region mean the same share of the shape for both (degrees are not scene units)")
-    optimizer = _optimizer(spec, method, parameters, layout, decide)
+    spans = tuple(parameters.shape_spans()) if parameters.has_geometry else ()
+    optimizer = _shape_optimizer(spec, spans, decide) if spans else _optimizer(spec, method, parameters, layout,
+                                                                                decide)
     growth, start = CLOSED_GROWTH, CLOSED_START
     if optimizer == "levenberg-marquardt":
         growth, start = _trust_region(measures, decide)
@@ -207,7 +216,7 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
     return Recipe(method=method, jacobian=spec.jacobian, fields_for=planned_for, depth=depth, effects=effects,
                   layout=layout, steps=steps, batch=batch, stop=stop, decisions=tuple(decisions),
                   warnings=tuple(warnings), texture_blocks=blocks, radiance=radiance, differential=differential,
-                  step_units=units)
+                  step_units=units, uniform=spans if optimizer == "adam" else ())
 
 
 def _geometry_method(spec: JobSpec, measures: Measures, decide) -> str:
@@ -216,7 +225,8 @@ def _geometry_method(spec: JobSpec, measures: Measures, decide) -> str:
     if spec.method != AUTO:
         refusal = method_class(str(spec.method)).geometry_refusal
         if refusal is not None:
-            raise InvalidJob("method", f"{spec.method} cannot optimize geometry (a shape's pose): {refusal}; use "
+            raise InvalidJob("method", f"{spec.method} cannot optimize geometry (a shape's pose or vertices): "
+                                       f"{refusal}; use "
                                        f"prb_projective or direct_projective (or method auto)")
         if spec.jacobian == "differential-field":
             raise InvalidJob("jacobian", "jacobian 'differential-field' is dL_theta's, which has no boundary term "
@@ -366,6 +376,19 @@ def _optimizer(spec: JobSpec, method: str, parameters: Parameters, layout: Deriv
         decide("optimizer", "levenberg-marquardt", f"{cost}: Gauss-Newton steps in a trust region reach the answer "
                                                    f"in fewer iterations than Adam's learning-rate-limited steps")
         return "levenberg-marquardt"
+    return "adam"
+
+
+def _shape_optimizer(spec: JobSpec, spans: tuple[tuple[int, int], ...], decide) -> str:
+    """Adam, uniform per mesh, for a job that optimizes a mesh's vertices (module docstring)."""
+    scalars = sum(stop - start for start, stop in spans)
+    if spec.optimizer in SECOND_ORDER:
+        raise InvalidJob("optimizer", f"{spec.optimizer} needs the Jacobian of every scalar, and a mesh's vertices are "
+                                      f"{scalars} scalars (one forward render each per view): use adam or auto")
+    decide("optimizer", "adam", f"a mesh's vertices: {scalars} LargeSteps coordinates, whose Jacobian would cost one "
+                                f"forward render each per view; Adam on the adjoint gradient, one step scale per mesh "
+                                f"(uniform: the largest second moment, as mi.ad.Adam(uniform=True) in Mitsuba's shape "
+                                f"tutorial)" + ("" if spec.optimizer == "auto" else " (the job's optimizer)"))
     return "adam"
 
 

@@ -32,6 +32,7 @@ from services.solver.scene.facts import SceneFacts, direct_reach, probe_scene
 from services.solver.scene.footprint import texel_footprint
 from services.solver.scene.load import LoadedScene, load_scene
 from services.solver.scene.params import ParameterSet
+from services.solver.scene.shaped import deform
 from services.solver.scene.targets import ImageDecodeError, decode_image
 from services.solver.seeds import derive_seed
 
@@ -186,7 +187,8 @@ class Checked:
         parameter that is not a texture), texels (of the textures)."""
         listed = TextureReport(self.parameters)
         return {"sensors": [list(self.scene.resolution(i)) for i in range(self.scene.sensor_count)],
-                "scalars": int(listed.listed.sum()), "labels": listed.labels, "texels": listed.texels}
+                "scalars": int(listed.listed.sum()), "labels": listed.labels, "texels": listed.texels,
+                "vertices": sum(mesh.size // 3 for mesh in self.parameters.shapes.values())}
 
 
 def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None = None,
@@ -196,7 +198,7 @@ def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None
     scene = load_job_scene(spec, scene_file)
     keys = [p.key for p in spec.parameters]
     try:
-        parameters = ParameterSet(scene.params, keys)
+        parameters = ParameterSet(scene.params, keys, spec.geometry.largesteps_lambda)
     except ValueError as exc:
         bad = [i for i, key in enumerate(keys) if f"{key!r}" in str(exc)]
         raise InvalidJob(f"parameters[{bad[0]}].key" if bad else "parameters", str(exc)) from None
@@ -208,6 +210,11 @@ def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None
     if max_texels is not None and split.texels > max_texels:
         raise InvalidJob("parameters", f"the textures have {split.texels} texels, more than the limit of {max_texels} "
                                        f"(NDRF_MAX_TEXELS)")
+    vertices = sum(mesh.size // 3 for mesh in parameters.shapes.values())
+    if max_texels is not None and split.texels + vertices > max_texels:
+        raise InvalidJob("parameters", f"the optimized meshes have {vertices} vertices (and the textures "
+                                       f"{split.texels} texels), more than the limit of {max_texels} together "
+                                       f"(NDRF_MAX_TEXELS)")
     check_head(spec, [info.owner for info in parameters.infos])
     check_carry(spec, parameters.n, [t.key for t in split.textures])
     scene_values = parameters.values()
@@ -215,6 +222,10 @@ def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None
     init, lower, upper, offset = [], [], [], 0
     for i, (p, info) in enumerate(zip(spec.parameters, parameters.infos)):
         own = scene_values[offset:offset + info.size]
+        if p.key.endswith(".vertex_positions") and info.owner == "geometry" and (p.init, p.bounds) != (None, None):
+            raise InvalidJob(f"parameters[{i}]", "a shape parameter starts from the scene's mesh and has no bounds "
+                                                 "(its scalars are LargeSteps differential coordinates): leave init "
+                                                 "and bounds unset")
         channels = info.shape[-1] if info.shape is not None else None
         init.append(own if p.init is None else _broadcast(p.init, info.size, f"parameters[{i}].init", channels))
         lo, hi = _bounds(p.key, info.owner, p.bounds)
@@ -246,6 +257,14 @@ def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None
         synthetic = spec.targets.synthetic
         own, offset, values = scene_values, 0, []
         for key, info in zip(keys, parameters.infos):
+            mesh = parameters.shapes.get(key[:-len(".vertex_positions")]) if info.owner == "geometry" else None
+            if mesh is not None:   # a shape's target: its mesh deformed, as differential coordinates
+                deformation = synthetic.meshes.get(mesh.shape)
+                mesh.target = mesh.v0 if deformation is None else deform(
+                    mesh.v0, deformation.scale, deformation.bump, deformation.bump_direction, deformation.bump_width)
+                values.append(mesh.to_differential(mesh.target))
+                offset += info.size
+                continue
             value = synthetic.values[key]
             channels = info.shape[-1] if info.shape is not None else None
             values.append(own[offset:offset + info.size] if value is None else

@@ -116,6 +116,8 @@ def describe(prepared: Prepared, recipe: Recipe, built: Built, state: RunState, 
         "upper": _bound(textures.scalars(prepared.upper)),
         "target_values": None if prepared.target_values is None else textures.scalars(prepared.target_values),
         "textures": textures.plan(prepared.init, prepared.lower, prepared.upper, prepared.target_values),
+        "shapes": {shape: {**report, "largesteps_lambda": prepared.spec.geometry.largesteps_lambda}   # at init
+                   for shape, report in prepared.problem.parameters.shape_reports(prepared.init).items()} or None,
         "sensors": sorted(prepared.targets),
         "resolution": [width, height],
         "depths": depths,

@@ -8,6 +8,8 @@ included. :class:`TextureReport` splits it for the reports:
 * the *listed* scalars (every parameter that is not a texture) keep their place in ``plan.json``
   (``scalars``, ``init``, ``lower``, ``upper``, ``target_values``), in each iteration record
   (``parameters``, ``updated_parameters``, ``dz_dp``) and in the summary, as before;
+* a shape parameter (a mesh's vertices, ``services.solver.scene.shape``) is not listed either:
+  the records report its Chamfer distance to a synthetic target mesh;
 * each texture is reported by a summary per iteration (:meth:`TextureReport.summaries`: mean per
   channel, min, max, gradient RMS and, against a synthetic target, RMSE and PSNR) and by its value
   ``(H, W, C)`` float32 (:meth:`TextureReport.images`), written to files by the host; its
@@ -46,12 +48,15 @@ class TextureReport:
 
     def __init__(self, parameters: ParameterSet):
         self.textures: list[Texture] = []
+        unlisted = {f"{shape}.vertex_positions" for shape in parameters.shapes}
         mask = np.ones(parameters.n, dtype=bool)
         self.labels: list[str] = []
         offset = 0
         for info in parameters.infos:
             if info.shape is not None:
                 self.textures.append(Texture(info.key, info.shape, offset))
+                mask[offset:offset + info.size] = False
+            elif info.key in unlisted:   # a mesh's vertices: reported by their Chamfer distance, not listed
                 mask[offset:offset + info.size] = False
             else:
                 self.labels += [f"{info.key}[{c}]" for c in range(info.size)]

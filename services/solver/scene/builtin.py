@@ -24,6 +24,8 @@ declared at the top level and referenced by the shapes, so parameter keys read a
                     acts through the light it reflects onto the walls (:mod:`.textured`).
 ``pose-block``      A generated block on a floor under an area light, 2 cameras: its pose is a
                     geometry parameter (:mod:`.posed`).
+``shape-sphere``    A generated icosphere under a constant sky and an area light, 6 cameras: its
+                    vertices are a shape parameter (:mod:`.shaped`).
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from collections.abc import Callable
 from schemas.scenes import BUILTIN_SCENES
 from services.solver.backend import use_mitsuba
 from services.solver.scene.posed import pose_block_builtin
+from services.solver.scene.shaped import shape_sphere_builtin
 from services.solver.scene.textured import textured_box_builtin, textured_floor_builtin
 
 
@@ -175,6 +178,7 @@ FACTORIES: dict[str, Callable[[], dict]] = {
     "textured-box": textured_box_builtin,
     "textured-floor": textured_floor_builtin,
     "pose-block": pose_block_builtin,
+    "shape-sphere": shape_sphere_builtin,
 }
 if set(FACTORIES) != set(BUILTIN_SCENES):  # the catalogue and the factories must name the same scenes
     raise ImportError(f"built-in scenes differ: {sorted(set(FACTORIES) ^ set(BUILTIN_SCENES))}")

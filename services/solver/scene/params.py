@@ -12,7 +12,9 @@ sampling, as in Mitsuba's ``prb``, so no derivative would reach them. A mesh's p
 (``<shape id>.to_world.translate`` / ``.rotate``, :mod:`.geometry`) is a *geometry* parameter: not
 a traverse key, its scalars move the mesh's ``vertex_positions``, and only the methods that sample
 the moving silhouettes (Mitsuba's projective integrators) differentiate it; every other method
-refuses it (``services.solver.optimize.resolve``).
+refuses it (``services.solver.optimize.resolve``). So is a mesh's shape,
+``<shape id>.vertex_positions`` (:mod:`.shape`): a traverse key, but its scalars are the
+``LargeSteps`` differential coordinates ``u`` of the vertices, not the vertices themselves.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import mitsuba as mi
 import numpy as np
 
 from services.solver.scene.geometry import POSE_KEYS, ShapePose, mesh_shapes, refusal, split_key
+from services.solver.scene.shape import MeshReports, ShapeMesh, shape_of
 
 Owner = Literal["bsdf", "emitter", "geometry"]
 
@@ -127,14 +130,14 @@ def texture_shape(value) -> tuple[int, ...] | None:
     return shape if isinstance(value, mi.TensorXf) and len(shape) == 3 else None
 
 
-class ParameterSet:
+class ParameterSet(MeshReports):
     """The ordered optimized scalars of one scene, and forward-mode AD with respect to them.
 
     ``n`` is the number of scalars, ``P`` in the shapes written elsewhere (gradient images are
     ``P x H x W x 3``).
     """
 
-    def __init__(self, params: mi.SceneParameters, keys: Sequence[str]):
+    def __init__(self, params: mi.SceneParameters, keys: Sequence[str], largesteps_lambda: float = 19.0):
         if not keys:
             raise ValueError("at least one parameter key must be selected")
         if len(set(keys)) != len(keys):
@@ -143,9 +146,15 @@ class ParameterSet:
         meshes = set(mesh_shapes(params))
         #: the meshes whose pose is optimized, by shape id (:mod:`.geometry`)
         self.poses: dict[str, ShapePose] = {}
+        #: the meshes whose vertices are optimized, by shape id (:mod:`.shape`)
+        self.shapes: dict[str, ShapeMesh] = {}
         for key in keys:
             geometry = split_key(key)
-            if geometry is not None and geometry[0] in meshes:
+            shape = shape_of(key)
+            if shape is not None and shape in meshes:
+                mesh = self.shapes[shape] = ShapeMesh.of(params, shape, largesteps_lambda)
+                allowed[key] = ParameterInfo(key, mesh.size, "geometry", "Mesh", tuple(mesh.centre))
+            elif geometry is not None and geometry[0] in meshes:
                 shape, kind = geometry
                 if shape not in self.poses:
                     self.poses[shape] = ShapePose.of(params, shape)
@@ -161,6 +170,9 @@ class ParameterSet:
                     reason = ("is an 8-bit texture: Mitsuba keeps an 8-bit image file (PNG, JPEG) as integers, which "
                               "have no derivative; give the texture as a float image (EXR)")
                 raise ValueError(f"parameter {key!r} {reason}; optimizable keys: {', '.join(allowed) or 'none'}")
+        for shape in set(self.poses) & set(self.shapes):
+            raise ValueError(f"parameter '{shape}.vertex_positions': the mesh's pose is optimized too; its vertices "
+                             f"already move freely (optimize one or the other)")
         self.params = params
         self.keys = list(keys)
         #: the variables :meth:`tracking` enabled gradients on, by key (None outside it)
@@ -194,11 +206,12 @@ class ParameterSet:
 
     @property
     def has_geometry(self) -> bool:
-        """Whether a scalar moves a shape (a pose)."""
-        return bool(self.poses)
+        """Whether a scalar moves a shape (a pose, or a mesh's vertices)."""
+        return bool(self.poses or self.shapes)
 
     def _geometry_keys(self) -> set[str]:
-        return {key for key in self.keys if (split := split_key(key)) is not None and split[0] in self.poses}
+        return {key for key in self.keys if (split := split_key(key)) is not None and split[0] in self.poses
+                or self._mesh(key) is not None}
 
     @property
     def geometry(self) -> list[bool]:
@@ -215,7 +228,9 @@ class ParameterSet:
         for key, info in zip(self.keys, self.infos):
             geometry = split_key(key) if info.owner == "geometry" else None
             unit = 1.0
-            if geometry is not None:
+            if (mesh := self._mesh(key)) is not None:   # differential coordinates: in radii, as a translation
+                unit = mesh.radius or 1.0
+            elif geometry is not None:
                 radius = self.poses[geometry[0]].radius or 1.0
                 unit = radius if geometry[1] == "to_world.translate" else 180.0 / np.pi
             out += [unit] * info.size
@@ -237,13 +252,17 @@ class ParameterSet:
     def _get(self, key: str):
         """The Dr.Jit value of ``key``: a traverse key's, or a pose's own (:mod:`.geometry`)."""
         geometry = split_key(key)
+        if (mesh := self._mesh(key)) is not None:
+            return mesh.value
         if geometry is not None and geometry[0] in self.poses:
             return self.poses[geometry[0]].values[geometry[1]]
         return self.params[key]
 
     def _set(self, key: str, value) -> None:
         geometry = split_key(key)
-        if geometry is not None and geometry[0] in self.poses:
+        if (mesh := self._mesh(key)) is not None:
+            mesh.value = value
+        elif geometry is not None and geometry[0] in self.poses:
             self.poses[geometry[0]].values[geometry[1]] = value
         else:
             self.params[key] = value
@@ -252,6 +271,8 @@ class ParameterSet:
         """Move the posed meshes to their poses' values, then let Mitsuba update the scene."""
         for pose in self.poses.values():
             pose.write(self.params)
+        for mesh in self.shapes.values():
+            mesh.write(self.params)
         self.params.update()
 
     def variable(self, key: str):
@@ -272,7 +293,13 @@ class ParameterSet:
 
     def refuse(self, before: np.ndarray, after: np.ndarray) -> str | None:
         """Why the step from ``before`` to ``after`` (flat vectors) may not be written: non-finite
-        vertices or inverted triangles of a posed mesh (:func:`.geometry.refusal`); None when it may."""
+        vertices or inverted triangles of a posed or reshaped mesh (:func:`.geometry.refusal`); None
+        when it may."""
+        for key, (start, stop) in self.offsets().items():
+            if (mesh := self._mesh(key)) is not None:
+                why = refusal(mesh.vertices(before[start:stop]), mesh.vertices(after[start:stop]), mesh.faces)
+                if why is not None:
+                    return f"{mesh.shape}: {why}"
         if not self.poses:
             return None
         old, new = self.poses_of(before), self.poses_of(after)

@@ -8,7 +8,10 @@ Update rule (Kingma & Ba 2015), for gradient ``g_t`` of step ``t = 1, 2, ...``::
 
 with ``m̂_t = m_t / (1 - β1^t)`` and ``v̂_t = v_t / (1 - β2^t)``. ``β1, β2`` lie in ``[0, 1)``,
 ``lr > 0`` and ``ε > 0``. The projection is what ``mi.ad.Adam`` does not do (an albedo would go
-negative). A non-finite gradient is refused: the caller reports it instead of writing a NaN
+negative). With ``uniform`` (spans ``(start, stop)`` of ``p``), each span's ``v̂`` is replaced by its
+largest entry, one step scale for the whole span: Mitsuba's ``mi.ad.Adam(uniform=True)``, which
+its shape tutorial uses on a mesh's LargeSteps coordinates (per-entry scales would undo the
+smoothing the parameterization gives). A non-finite gradient is refused: the caller reports it instead of writing a NaN
 parameter. Adam averages Monte Carlo noise through its moments, so it never asks for a larger
 batch (:meth:`~.base.ParameterOptimizer.noise_dominated` stays false).
 """
@@ -22,6 +25,8 @@ from services.solver.optimize.optimizers.base import ParameterOptimizer, check_f
 
 class Adam(ParameterOptimizer):
     name = "adam"
+    #: spans ``(start, stop)`` of ``p`` that share one second moment, their largest (module docstring)
+    uniform: tuple[tuple[int, int], ...] = ()
 
     def __init__(self, size: int, lr: float, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-8):
         if not lr > 0:
@@ -46,6 +51,8 @@ class Adam(ParameterOptimizer):
         self.v = self.beta2 * self.v + (1 - self.beta2) * g * g
         m_hat = self.m / (1 - self.beta1 ** self.t)
         v_hat = self.v / (1 - self.beta2 ** self.t)
+        for start, stop in self.uniform:
+            v_hat[start:stop] = np.max(v_hat[start:stop], initial=0.0)
         step = (self.lr if lr is None else lr) * m_hat / (np.sqrt(v_hat) + self.eps)
         if self.units is not None:
             step = step * self.units

@@ -120,7 +120,7 @@ export function imagesPanel(jobId) {
   /** New records (sorted by iteration) or plan: keep the slider and the images in step. */
   function update(records, plan) {
     const scalars = (plan && plan.scalars) || [];
-    geometry = ((plan && plan.keys) || []).some((key) => /\.to_world\.(translate|rotate)$/.test(key));
+    geometry = ((plan && plan.keys) || []).some((key) => /\.(to_world\.(translate|rotate)|vertex_positions)$/.test(key));
     silhouetteFigure.hidden = !geometry;
     scalarGradients.hidden = scalars.length === 0 && ((plan && plan.textures) || []).length > 0;
     if (scalars.join("\n") !== labels.join("\n")) {
