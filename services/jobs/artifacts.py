@@ -49,7 +49,9 @@ class JobWriter:
         self.states, self.job_id, self.attempt = states, job_id, attempt
         self.files: JobFiles = states.files(job_id)
         self.byte_budget, self.budget_limit = byte_budget, budget_limit
-        self.written = self._existing_bytes() if byte_budget is not None else 0
+        self.written = self._existing_bytes() if byte_budget is not None else 0   # what the job's files take
+        self._sizes: dict[str, int] = {}   # each key's size as this writer last wrote it
+        self._resumed = self.written > 0   # an earlier attempt's keys may be overwritten: their size is asked once
         self.stop = stop
         self.labels: list[str] = []
         self.asked_for_images = False  # the record's images_requested, as the last fence check read it
@@ -67,11 +69,19 @@ class JobWriter:
                 raise Fenced(self.job_id, self.attempt, record.attempt)
 
     def _put(self, key: str, data: bytes, *, durable: bool = True) -> None:
-        if self.byte_budget is not None and self.written + len(data) > self.byte_budget:
+        """Store ``data`` under ``key`` within the byte budget. A key written again (the latest
+        checkpoint, a resume's images) counts once, at its new size: the budget bounds what the
+        job's files take, not what it ever wrote."""
+        previous = self._sizes.get(key)
+        if previous is None:
+            previous = (self.files.store.size(key) or 0) if self._resumed and self.byte_budget is not None else 0
+        grown = len(data) - previous
+        if self.byte_budget is not None and self.written + grown > self.byte_budget:
             raise BudgetExceeded(f"the job's files would exceed its disk budget of {self.byte_budget >> 20} MiB "
                                  f"({self.budget_limit}); write images less often (images_every)")
         self.files.store.put(key, data, durable=durable)
-        self.written += len(data)
+        self.written += grown
+        self._sizes[key] = len(data)
 
     def _existing_bytes(self) -> int:
         return self.files.store.prefix_bytes(self.files.prefix)

@@ -153,3 +153,29 @@ def test_iteration_files_skip_fsync_and_every_checkpoint_makes_them_durable_firs
     assert ("event", "iteration", False) in store.journal
     writer.finish({"status": "succeeded", "iterations": 3, "seconds": 1.0})
     assert not store._unflushed
+
+
+def test_the_byte_budget_bounds_what_the_files_take_not_what_was_ever_written(tmp_path):
+    """Each checkpoint replaces the last: 60 checkpoints of 1 MiB fit a budget of 4 MiB (the chaos
+    bench with quotas on failed 8 of 10 healthy jobs before: every overwrite was counted again).
+    A resumed attempt's writer counts what the files take, and an overwrite of an earlier
+    attempt's key at its new size; new files still pass the budget with BudgetExceeded."""
+    from services.jobs.artifacts import BudgetExceeded
+
+    service = JobService(FolderStore(tmp_path / "store"), LocalJobQueue(), LocalEventBus())
+    record, _ = service.submit(JobSpec.model_validate(small_job("direct", iterations=5)))
+    service.states.transition(record.id, JobStatus.RUNNING, attempt="w#1")
+    megabyte = b"x" * (1 << 20)
+    writer = JobWriter(service.states, record.id, attempt="w#1", byte_budget=4 << 20)
+    for k in range(60):
+        writer.checkpoint(megabyte, next_iteration=k + 1)
+    files = service.states.files(record.id)
+    taken = files.store.prefix_bytes(files.prefix)
+    assert taken < 2 << 20 and abs(writer.written - taken) < 64 << 10, (writer.written, taken)
+    resumed = JobWriter(service.states, record.id, attempt="w#1", byte_budget=4 << 20)
+    for k in range(60, 70):
+        resumed.checkpoint(megabyte, next_iteration=k + 1)
+    assert abs(resumed.written - files.store.prefix_bytes(files.prefix)) < 64 << 10
+    with pytest.raises(BudgetExceeded, match="disk budget of 4 MiB"):
+        for k in range(4):
+            resumed._put(files.key(f"extra-{k}"), megabyte)
