@@ -1,5 +1,9 @@
 """The service end to end: real ``ndrf serve`` (uvicorn) and ``ndrf worker`` processes against a
-real Redis server started by the tests (no persistence, so it can be restarted empty)."""
+real Redis server started by the tests (no persistence, so it can be restarted empty).
+
+Every case runs on a folder store; those that read and write the store in their own ways run on
+an S3 bucket as well (``store_env``). The multi-worker cases on S3, where no folder is shared,
+are tests/e2e/test_service_s3.py."""
 
 from __future__ import annotations
 
@@ -7,6 +11,7 @@ import signal
 import time
 
 import numpy as np
+import pytest
 
 from harness.cluster import small_job, start_api, wait_until
 from tests.support.service import read_sse
@@ -44,6 +49,7 @@ def test_embedded_submit_stream_succeed_and_fetch_images(tmp_path, store_env):
         proc.kill(signal.SIGTERM)
 
 
+@pytest.mark.parametrize("store_env", ["folder"], indirect=True)   # S3: tests/e2e/test_service_s3.py
 def test_an_auto_job_says_what_it_chose_through_the_api(tmp_path, store_env):
     """``"method": "auto"`` over HTTP: the record keeps what was asked, the plan says what ran and
     why, each decision with its reason, and the iteration records name their views."""
@@ -96,6 +102,7 @@ def test_cancel_stops_a_running_job_and_keeps_its_artifacts(stack):
     assert api.wait_status(queued["id"], {"canceled"}, 60)["status"] == "canceled"
 
 
+@pytest.mark.parametrize("store_env", ["folder"], indirect=True)   # S3: tests/e2e/test_service_s3.py
 def test_the_dashboard_can_ask_a_running_job_for_its_images(stack):
     """``POST /v1/jobs/{id}/images`` through a real worker and its sandboxed child (SIGUSR2): the
     next iteration writes every view's render and the gradient images, off the job's schedule."""
@@ -123,6 +130,7 @@ def test_the_dashboard_can_ask_a_running_job_for_its_images(stack):
     assert api.json("POST", f"/v1/jobs/{job_id}/images")[0] == 409      # no next iteration
 
 
+@pytest.mark.parametrize("store_env", ["folder"], indirect=True)   # S3: tests/e2e/test_service_s3.py
 def test_two_workers_share_the_queue(stack):
     api = stack.api
     stack.add_worker("w1")
@@ -134,6 +142,7 @@ def test_two_workers_share_the_queue(stack):
     assert workers == {"w1", "w2"}
 
 
+@pytest.mark.parametrize("store_env", ["folder"], indirect=True)   # S3: tests/e2e/test_service_s3.py
 def test_sigkill_of_a_worker_hands_the_job_to_another_from_its_checkpoint(stack):
     api = stack.api
     first = stack.add_worker("doomed")
@@ -156,6 +165,7 @@ def test_sigkill_of_a_worker_hands_the_job_to_another_from_its_checkpoint(stack)
     assert all(not (e.get("attempt") or "").startswith("doomed") for e in after)   # no write of the dead attempt
 
 
+@pytest.mark.parametrize("store_env", ["folder"], indirect=True)   # S3: tests/e2e/test_service_s3.py
 def test_a_job_that_keeps_killing_its_worker_fails_after_max_attempts(stack):
     api = stack.api
     _, _, accepted = api.json("POST", "/v1/jobs", small_job(iterations=400))
@@ -174,6 +184,7 @@ def test_a_job_that_keeps_killing_its_worker_fails_after_max_attempts(stack):
     assert "crashed its worker 2 times" in job["error"]
 
 
+@pytest.mark.parametrize("store_env", ["folder"], indirect=True)   # S3: tests/e2e/test_service_s3.py
 def test_redis_restart_without_persistence_the_job_still_finishes(stack, redis_server):
     api = stack.api
     stack.add_worker("w1")
