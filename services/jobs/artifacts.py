@@ -20,6 +20,7 @@ import numpy as np
 from schemas.outcomes import Outcome
 from schemas.records import IterationRecord, JobStatus
 from services.jobs.state import Fenced, JobStates
+from services.store.files import dumps
 from services.store.images import display_png, exr_bytes, gradient_png, npy_bytes, srgb_png
 from services.store.job import JobFiles
 
@@ -30,6 +31,9 @@ log = logging.getLogger(__name__)
 #: checkpoint, images request and the end): each update is a read and a compare-and-set write of
 #: the record, a third of what writing an iteration costs. Clients follow iterations on the events.
 RECORD_SECONDS = 0.5
+#: Bytes of the byte budget kept back for what a job writes once its files are refused: the
+#: record's last rewrite, the failure's event and the summary.
+BUDGET_RESERVE = 32 << 10
 
 
 class BudgetExceeded(Exception):
@@ -76,7 +80,7 @@ class JobWriter:
         if previous is None:
             previous = (self.files.store.size(key) or 0) if self._resumed and self.byte_budget is not None else 0
         grown = len(data) - previous
-        if self.byte_budget is not None and self.written + grown > self.byte_budget:
+        if self.byte_budget is not None and self.written + grown > self.byte_budget - BUDGET_RESERVE:
             raise BudgetExceeded(f"the job's files would exceed its disk budget of {self.byte_budget >> 20} MiB "
                                  f"({self.budget_limit}); write images less often (images_every)")
         self.files.store.put(key, data, durable=durable)
@@ -87,7 +91,12 @@ class JobWriter:
         return self.files.store.prefix_bytes(self.files.prefix)
 
     def event(self, kind: str, *, durable: bool = True, **payload) -> dict:
-        return self.states.event(self.job_id, {"type": kind, "attempt": self.attempt, **payload}, durable=durable)
+        """Append an event to the job's log; its line counts against the byte budget (it is never
+        refused: the events say what happened, a refusal included)."""
+        stored = self.states.event(self.job_id, {"type": kind, "attempt": self.attempt, **payload}, durable=durable)
+        if self.byte_budget is not None:
+            self.written += len(dumps(stored, indent=None)) + 1
+        return stored
 
     # --------------------------------------------------------------- reports
 
