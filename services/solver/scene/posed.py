@@ -25,19 +25,24 @@ FACES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 
                   [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], np.uint32)
 
 
-def block_mesh(name: str = "block", reflectance=(0.7, 0.3, 0.2)):
-    """The block as a Mitsuba mesh with a diffuse BSDF of ``reflectance``."""
+def diffuse_mesh(name: str, vertices: np.ndarray, faces: np.ndarray, reflectance):
+    """A generated mesh, ``vertices`` ``(N, 3)`` and ``faces`` ``(F, 3)``, as a Mitsuba mesh with a
+    diffuse BSDF of ``reflectance`` (the built-in scenes' blocks and spheres)."""
     mi = use_mitsuba()
-    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)
-    vertices = corners * HALF + CENTRE
     props = mi.Properties()
     props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": list(reflectance)}})
-    mesh = mi.Mesh(name, len(vertices), len(FACES), props, False, False)
+    mesh = mi.Mesh(name, len(vertices), len(faces), props, False, False)
     params = mi.traverse(mesh)
-    params["vertex_positions"] = mi.Float(vertices.ravel().astype(np.float32))
-    params["faces"] = mi.UInt32(FACES.ravel())
+    params["vertex_positions"] = mi.Float(np.asarray(vertices).ravel().astype(np.float32))
+    params["faces"] = mi.UInt32(np.asarray(faces).ravel().astype(np.uint32))
     params.update()
     return mesh
+
+
+def block_mesh(name: str = "block", reflectance=(0.7, 0.3, 0.2)):
+    """The block as a Mitsuba mesh with a diffuse BSDF of ``reflectance``."""
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)
+    return diffuse_mesh(name, corners * HALF + CENTRE, FACES, reflectance)
 
 
 def pose_block_builtin(resolution: int = 32) -> dict:

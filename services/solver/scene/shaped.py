@@ -19,6 +19,7 @@ import math
 import numpy as np
 
 from services.solver.backend import use_mitsuba
+from services.solver.scene.posed import diffuse_mesh
 
 RADIUS = 0.4
 CENTRE = np.array([0.0, 0.0, 0.0])
@@ -77,17 +78,8 @@ def deform(vertices: np.ndarray, scale=(1.0, 1.0, 1.0), bump: float = 0.0, direc
 
 def sphere_mesh(name: str = "sphere", subdivisions: int = SUBDIVISIONS, reflectance=(0.6, 0.6, 0.6)):
     """The icosphere as a Mitsuba mesh of radius :data:`RADIUS` about :data:`CENTRE`."""
-    mi = use_mitsuba()
     points, faces = icosphere(subdivisions)
-    vertices = points * RADIUS + CENTRE
-    props = mi.Properties()
-    props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": list(reflectance)}})
-    mesh = mi.Mesh(name, len(vertices), len(faces), props, False, False)
-    params = mi.traverse(mesh)
-    params["vertex_positions"] = mi.Float(vertices.ravel().astype(np.float32))
-    params["faces"] = mi.UInt32(faces.ravel().astype(np.uint32))
-    params.update()
-    return mesh
+    return diffuse_mesh(name, points * RADIUS + CENTRE, faces, reflectance)
 
 
 def shape_sphere_builtin(resolution: int = 32) -> dict:
