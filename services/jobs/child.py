@@ -182,6 +182,7 @@ def probe(start: dict, out) -> None:
         "read": {file: attempt(lambda f=file: Path(f).read_text()[:100]) for file in start.get("read", [])},
         "unmount": {folder: attempt(lambda f=folder: unmount(f)) for folder in start.get("unmount", [])},
         "uid": os.getuid(), "capabilities": capabilities(), "cwd_writable": attempt(lambda: write(".")),
+        "mounts": {line.split()[4]: line.split()[5] for line in Path("/proc/self/mountinfo").read_text().splitlines()},
     })
 
 

@@ -54,6 +54,11 @@ _KEPT = MS_NOSUID | MS_NODEV | MS_NOEXEC | 16 | 64 | 1024 | 2048 | 4096
 #: Pseudo filesystems whose mounts may refuse a read-only remount (what they expose is guarded
 #: by the dropped capabilities, not by the mount flag).
 _PSEUDO = ("/proc", "/sys", "/dev")
+#: ``/proc`` itself stays writable: NVIDIA's user-mode driver writes there as CUDA starts, and under
+#: a read-only ``/proc`` neither torch nor Dr.Jit find the GPU (measured on a lent H100, issue 35:
+#: bench/gpu_sandbox_bisect.py). What a root child could change through it is made read-only
+#: instead, as container runtimes do: the kernel's settings, the SysRq trigger, IRQ and bus tuning.
+PROC_READ_ONLY = ("/proc/sys", "/proc/sysrq-trigger", "/proc/irq", "/proc/bus", "/proc/fs")
 PR_SET_NO_NEW_PRIVS, PR_CAPBSET_DROP, PR_CAP_AMBIENT, PR_CAP_AMBIENT_CLEAR_ALL = 38, 24, 47, 4
 
 
@@ -137,7 +142,9 @@ def enter(spec: dict) -> None:
     _check_namespaces(spec.get("parent_ns", {}))
     libc = _libc()
     work = Path.cwd().resolve()
-    for point in _mount_points():                              # 1. every mount read-only
+    for point in _mount_points():                              # 1. every mount read-only, but /proc
+        if point == "/proc":
+            continue
         try:
             _read_only(libc, point)
         except FileNotFoundError:  # under a mount that covers it: not reachable by any path
@@ -145,6 +152,7 @@ def enter(spec: dict) -> None:
         except OSError:
             if not point.startswith(_PSEUDO):
                 raise
+    _proc_read_only(libc)
     # 2. a private /dev/shm, also holding the writes of the kernel cache's overlay
     _mount(libc, "tmpfs", "/dev/shm", "tmpfs", MS_NOSUID | MS_NODEV, f"size={SHM_BYTES},mode=1777")
     folders = sorted({Path(p).resolve() for p in (*spec.get("hide", []), *SOCKET_FOLDERS) if Path(p).is_dir()},
@@ -169,6 +177,30 @@ def enter(spec: dict) -> None:
     _mount(libc, None, str(work), None, MS_REMOUNT | MS_BIND | MS_NOSUID | MS_NODEV | kept)
     os.chdir(work)                                             # onto the writable mount
     _drop_privileges(libc)
+
+
+def _proc_read_only(libc: ctypes.CDLL) -> None:
+    """Bind each of :data:`PROC_READ_ONLY` onto itself, read-only. Where that is refused the
+    child is in a user namespace (the service does not run as root), and its root owns nothing
+    there to write to: go on; a real root child must not."""
+    for path in PROC_READ_ONLY:
+        if not os.path.exists(path):
+            continue
+        try:
+            _mount(libc, path, path, None, MS_BIND | MS_REC)
+            _read_only(libc, path)
+        except OSError:
+            if _real_root():
+                raise
+
+
+def _real_root() -> bool:
+    """Whether this process's uid 0 is the machine's root (no user namespace in between)."""
+    try:
+        first = Path("/proc/self/uid_map").read_text().split()
+    except OSError:
+        return os.getuid() == 0
+    return os.getuid() == 0 and first[:2] == ["0", "0"]
 
 
 def _refuse_to_hide_the_code(hidden: list[Path]) -> None:

@@ -216,6 +216,9 @@ def test_a_sandboxed_child_cannot_write_the_store_nor_reach_redis(tmp_path, redi
     assert seen["list"][str(tmp_path / "scratch")] == "ok: ['job-1']", seen
     assert all(v.startswith("refused") for v in seen["unmount"].values()), seen
     assert seen["capabilities"] == "0" and seen["cwd_writable"].startswith("ok"), seen
+    # /proc stays writable (CUDA does not start otherwise, issue 35); the kernel's settings do not
+    assert seen["mounts"]["/"].startswith("ro") and seen["mounts"]["/proc"].startswith("rw"), seen["mounts"]
+    assert seen["mounts"]["/proc/sys"].startswith("ro"), seen["mounts"]
     secret = tmp_path / "credentials"
     secret.write_text("aws_secret_access_key = k")
     unix = socket.socket(socket.AF_UNIX)                          # Redis on a Unix socket: a read-only
