@@ -9,7 +9,7 @@ is reported instead of silently ignored.
 from __future__ import annotations
 
 import hashlib
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -221,8 +221,19 @@ class EffectOverrides(_Strict):
 # --------------------------------------------------------------------------------- geometry
 
 class GeometrySettings(_Strict):
-    """How shape parameters (``<shape id>.vertex_positions``) are optimized (ignored by jobs
-    without one; ``services.solver.scene.shape``)."""
+    """How geometry parameters (a pose, ``<shape id>.vertex_positions``) are optimized (ignored by
+    jobs without one; ``services.solver.scene.shape``, ``services.solver.optimize.blur``)."""
+
+    blur_px: Annotated[float, Field(ge=0.0, le=64.0)] | Literal["auto"] = Field(
+        "auto", description="Coarse to fine: the standard deviation, in pixels, of the Gaussian that blurs both the "
+                            "render and the target in the loss at the first iteration. A pose far from its target "
+                            "overlaps it only once both are blurred, and only then does the loss's downhill direction "
+                            "point towards it. auto: a sixteenth of the film's smaller side for a pose, 0 (off) for "
+                            "vertex positions; 0: off.")
+    blur_end_px: float = Field(1.0, ge=0.0, le=64.0, description="The blur's standard deviation, in pixels, once it "
+                                                                 "has narrowed (kept to the end of the run).")
+    blur_share: float = Field(0.4, gt=0.0, le=1.0, description="The share of the iterations over which the blur "
+                                                               "narrows linearly from blur_px to blur_end_px.")
 
     largesteps_lambda: float = Field(
         19.0, ge=0.0, le=1e4, description="λ of the LargeSteps parameterization (Nicolet et al. 2021, Mitsuba's "
@@ -346,8 +357,10 @@ class JobSpec(_Strict):
                                                              "delta = -grad. It must stay below the ratio of H's smallest "
                                                              "to largest curvature, or it damps exactly the valley "
                                                              "direction the step is for.")
-    hessian: Literal["successive", "product", "cross"] = Field(
-        "successive", description="Curvature from the Jacobian J: 'product' (2/n) J^T J from one estimate, biased "
+    hessian: Literal["auto", "successive", "product", "cross"] = Field(
+        "auto", description="Curvature from the Jacobian J. 'auto': 'cross' for a pose (its Jacobian changes as "
+                            "silhouettes move, so 'successive' would mostly fall back to the biased product), "
+                            "else 'successive'. 'product' (2/n) J^T J from one estimate, biased "
                                   "upwards by J's Monte Carlo variance, which damps the valley direction (most "
                                   "where the signal is weak, as for an object seen only in reflections); 'cross' "
                                   "(1/n)(J_a^T J_b + J_b^T J_a) from two independent estimates, unbiased, one more "
@@ -424,7 +437,7 @@ class JobSpec(_Strict):
                 raise ValueError(f"targets.synthetic.meshes names {unused}, whose vertex_positions are not parameters")
         if self.optimizer in SECOND_ORDER and self.loss != "l2":
             raise ValueError(f"optimizer {self.optimizer!r} models the l2 loss; got loss {self.loss!r}")
-        if self.hessian != "successive" and self.optimizer == "adam":
+        if self.hessian not in ("auto", "successive") and self.optimizer == "adam":
             raise ValueError(f"hessian {self.hessian!r} is a second-order optimizer's; the optimizer is "
                              f"{self.optimizer!r}")
         if self.jacobian == "differential-field" and self.method in (Method.DIRECT, Method.RADIANCE_CACHE):

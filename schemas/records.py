@@ -70,7 +70,8 @@ class IterationRecord(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     iteration: int = Field(description="0-based iteration index.")
-    loss: float | None = Field(description="Image loss z(y), summed over sensors.")
+    loss: float | None = Field(description="Image loss z(y), summed over sensors (of blurred images while a "
+                                           "geometry job's loss is blurred: plan.json's recipe.blur).")
     parameters: list[float] = Field(description="Parameters at which loss and gradient were evaluated (the scalars "
                                                 "plan.json lists: every parameter but textures).")
     updated_parameters: list[float] = Field(description="Parameters after the optimizer's step and projection.")

@@ -45,6 +45,9 @@ class Measures:
     def footprint(self, key, shape):
         raise AssertionError("no texture")
 
+    def film(self):
+        return (64, 48)
+
 
 def _parameters():
     return SimpleNamespace(has_textures=False, has_geometry=True, n=6, sizes=[3, 3], geometry=[True] * 6,

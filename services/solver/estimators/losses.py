@@ -48,6 +48,14 @@ class ImageLoss:
             image = np.where(bad, 0.0, image).astype(image.dtype)
         return image_loss(self.kind, image, self.target)
 
+    def image(self, image: np.ndarray) -> np.ndarray:
+        """The image the loss compares (this one: ``image`` itself; :class:`BlurredLoss`: ``G image``)."""
+        return image
+
+    def jacobian(self, images: np.ndarray) -> np.ndarray:
+        """The Jacobian of :meth:`image` for gradient images ``J`` ``(P, H, W, C)``: ``J`` itself."""
+        return images
+
     def device(self, image):
         """``(z, dz/dy, non_finite)`` for a Dr.Jit ``(H, W, 3)`` image: unevaluated Dr.Jit values,
         ``dz/dy`` detached (the weights of the adjoint pass, Eq. 10)."""
@@ -77,3 +85,66 @@ def device_loss(kind: str, image, target):
     if kind == "l2":
         return dr.sum(dr.square(diff), axis=None) / n, diff * (2.0 / n), dr.count(~finite, axis=None)
     return dr.sum(dr.abs(diff), axis=None) / n, dr.sign(diff) / n, dr.count(~finite, axis=None)
+
+
+def gaussian_matrix(size: int, sigma: float) -> np.ndarray:
+    """The ``(size, size)`` float64 matrix of a 1-D Gaussian blur of standard deviation ``sigma``
+    pixels, zero outside the image and truncated at 3 ``sigma``: symmetric, so it is its own
+    adjoint (``Gᵀ = G``). ``sigma == 0`` gives the identity."""
+    if not sigma >= 0:
+        raise ValueError(f"the blur's sigma must be >= 0 pixels, got {sigma}")
+    if sigma == 0:
+        return np.eye(size)
+    offsets = np.arange(size)[:, None] - np.arange(size)[None, :]
+    kernel = np.exp(-0.5 * (offsets / sigma) ** 2) * (np.abs(offsets) <= 3 * sigma)
+    return kernel / kernel.sum(axis=1, keepdims=True).max()   # every row of the interior sums to 1
+
+
+def blur(images: np.ndarray, sigma: float) -> np.ndarray:
+    """``G images``: the separable Gaussian blur of images ``(..., H, W, C)`` (:func:`gaussian_matrix`
+    on each axis), float64."""
+    if sigma == 0:
+        return np.asarray(images, np.float64)
+    h, w = images.shape[-3], images.shape[-2]
+    return np.einsum("ij,...jkc,lk->...ilc", gaussian_matrix(h, sigma), np.asarray(images, np.float64),
+                     gaussian_matrix(w, sigma), optimize=True)
+
+
+class BlurredLoss:
+    """The loss of one view on images blurred by a Gaussian of ``sigma`` pixels, ``z(G y)`` against
+    ``G t`` (coarse to fine: a pose far from its target still overlaps it once both are blurred,
+    and the loss's downhill direction then points towards it). On the host only, so a method takes
+    its host path (:class:`ImageLoss` alone runs on the device).
+
+    ``l2``: ``z = mean((G(y - t))²)``, ``dz/dy = 2 G G(y - t) / n`` (``G`` symmetric);
+    ``l1``: ``z = mean(|G(y - t)|)``, ``dz/dy = G sign(G(y - t)) / n``. The Jacobian of ``G y`` is
+    ``G J`` (:meth:`jacobian`), which the curvature must use with this loss."""
+
+    WHERE = ImageLoss.WHERE
+
+    def __init__(self, loss: ImageLoss, sigma: float):
+        if not sigma > 0:
+            raise ValueError(f"a blurred loss needs sigma > 0 pixels, got {sigma} (use the ImageLoss itself)")
+        self.kind, self.sigma, self.sanitized = loss.kind, float(sigma), loss.sanitized
+        self._blurred_target = blur(loss.target, self.sigma)
+
+    def __call__(self, image: np.ndarray) -> tuple[float, np.ndarray]:
+        if image.shape != self._blurred_target.shape:
+            raise ValueError(f"image {image.shape} and target {self._blurred_target.shape} differ in shape")
+        bad = ~np.isfinite(image)
+        if bad.any():
+            self.sanitized(self.WHERE, int(bad.sum()))
+            image = np.where(bad, 0.0, image)
+        diff = blur(image, self.sigma) - self._blurred_target
+        n = diff.size
+        if self.kind == "l2":
+            return float(np.mean(diff ** 2)), blur(2.0 * diff / n, self.sigma).astype(np.float32)
+        return float(np.mean(np.abs(diff))), blur(np.sign(diff) / n, self.sigma).astype(np.float32)
+
+    def image(self, image: np.ndarray) -> np.ndarray:
+        """``G image`` ``(H, W, C)``: the image the loss compares."""
+        return blur(image, self.sigma)
+
+    def jacobian(self, images: np.ndarray) -> np.ndarray:
+        """``G J`` for gradient images ``J`` ``(P, H, W, C)``."""
+        return blur(images, self.sigma)

@@ -53,7 +53,7 @@ def estimate_batch(k: int, prepared: Prepared, recipe: Recipe, built: Built, sta
     out = BatchEstimate(0.0, np.zeros(problem.parameters.n))
     for view in batch.sensors:
         seed = derive_seed(seed0, "iteration", k, view)
-        loss = state.loss_of(prepared, view)
+        loss = state.loss_of(prepared, view, recipe.blur_at(k))
         images = None
         if view in measured and built.jacobian is None:
             candidate, z, dz_dp, images = built.method.candidate_gradient_and_images(
@@ -69,12 +69,12 @@ def estimate_batch(k: int, prepared: Prepared, recipe: Recipe, built: Built, sta
         out.dz_dp += batch.scale * dz_dp
         out.loss += batch.scale * z
         out.candidates[view] = candidate
-        if images is not None:
-            out.jacobians[view] = [_matrix(problem, images, block)]
+        if images is not None:   # the Jacobian of the loss's images (a blurred loss's: G J)
+            out.jacobians[view] = [_matrix(problem, loss.jacobian(images), block)]
             if draws > 1:
                 other = built.jacobian_source.gradient_images(problem, fields, spp=size.gradient_spp,
                                                      seed=derive_seed(seed, "cross"), sensor=view)
-                out.jacobians[view].append(_matrix(problem, other, block))
+                out.jacobians[view].append(_matrix(problem, loss.jacobian(other), block))
     return out
 
 

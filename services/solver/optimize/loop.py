@@ -315,8 +315,9 @@ class InverseRenderingRun:
             block = block_of(recipe)
             for view, candidate in estimate.candidates.items():
                 jacobian = estimate.jacobians.get(view)
-                state.answer.residual(k, view, block_residual(candidate, prepared.targets[view], block),
-                                      None if jacobian is None else jacobian[0])
+                loss = state.loss_of(prepared, view, recipe.blur_at(k))   # the residual of its images, as J
+                state.answer.residual(k, view, block_residual(loss.image(candidate), loss.image(prepared.targets[view]),
+                                                              block), None if jacobian is None else jacobian[0])
         weight = len(estimate.candidates) * state.batch.gradient_spp
         state.answer.observe(state.parameters, estimate.dz_dp, weight, None if curvature is None else curvature.hessian)
         return state.answer.estimate()

@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass
 
 from services.solver.estimators.layout import DerivativeLayout
 from services.solver.estimators.render import PathDepth
+from services.solver.optimize.blur import BlurSchedule
 from services.solver.optimize.stopping import StopRule
 from services.solver.scene.effects import Effects
 
@@ -132,6 +133,12 @@ class Recipe:
     #: spans ``(start, stop)`` of ``p`` whose Adam steps share one scale (a mesh's vertices:
     #: :class:`~services.solver.optimize.optimizers.adam.Adam`'s ``uniform``)
     uniform: tuple[tuple[int, int], ...] = ()
+    #: a geometry job's coarse-to-fine blur of the loss (:mod:`.blur`; None: sharp images)
+    blur: BlurSchedule | None = None
+
+    def blur_at(self, k: int) -> float:
+        """The loss's blur at iteration ``k``, in pixels (0: none)."""
+        return 0.0 if self.blur is None else self.blur.at(k)
 
     def to_json(self) -> dict:
         return {"method": self.method, "optimizer": self.steps.optimizer, "jacobian": self.jacobian,
@@ -143,4 +150,5 @@ class Recipe:
                 "stop": asdict(self.stop), "texture_blocks": dict(self.texture_blocks),
                 "fields": {"radiance": self.radiance, "differential": self.differential},
                 "step_units": list(self.step_units) or None, "uniform": [list(s) for s in self.uniform] or None,
+                "blur": None if self.blur is None else self.blur.to_json(),
                 "decisions": [asdict(d) for d in self.decisions], "warnings": list(self.warnings)}

@@ -52,13 +52,15 @@ from typing import Protocol
 import numpy as np
 
 from schemas.errors import InvalidJob
-from schemas.job import SECOND_ORDER, JobSpec
+from schemas.job import JobSpec
 from schemas.methods import AUTO, Method
 from services.solver.estimators.layout import DerivativeLayout
 from services.solver.estimators.methods import make_method, method_class
 from services.solver.estimators.methods.prb import channel_groups
 from services.solver.estimators.render import PathDepth
+from services.solver.optimize.blur import resolve_blur
 from services.solver.optimize.recipe import BatchRule, Decision, Recipe, Steps
+from services.solver.optimize.resolve_geometry import curvature, geometry_method, shape_optimizer
 from services.solver.optimize.stopping import StopRule
 from services.solver.scene.effects import Effects, choose_effects
 from services.solver.scene.facts import SceneFacts
@@ -115,6 +117,9 @@ class Measures(Protocol):
     def footprint(self, key: str, shape: tuple[int, ...]) -> np.ndarray:
         """``(H, W)`` pixels of the target views that see each texel of the texture ``key`` directly."""
 
+    def film(self) -> tuple[int, int]:
+        """The smallest target view's ``(width, height)`` in pixels."""
+
 
 class Parameters(Protocol):
     """What :func:`resolve` reads of the optimized parameters (a ``ParameterSet``)."""
@@ -170,7 +175,7 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
 
     depth = PathDepth(spec.render.max_depth, spec.render.rr_depth)
     if parameters.has_geometry:
-        method = _geometry_method(spec, measures, decide)
+        method = geometry_method(spec, measures, decide, direct=DIRECT_DEPTH, limit=MISSING_ENERGY)
     else:
         method = str(Method.PRB) if spec.method == AUTO else str(spec.method)
         if spec.method == AUTO:
@@ -200,53 +205,26 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
                "radians (which move its farthest vertex by one radius), so that the learning rate and the trust "
                "region mean the same share of the shape for both (degrees are not scene units)")
     spans = tuple(parameters.shape_spans()) if parameters.has_geometry else ()
-    optimizer = _shape_optimizer(spec, spans, decide) if spans else _optimizer(spec, method, parameters, layout,
+    optimizer = shape_optimizer(spec, spans, decide) if spans else _optimizer(spec, method, parameters, layout,
                                                                                 decide)
+    pose = parameters.has_geometry and sum(parameters.geometry) > sum(b - a for a, b in spans)
     growth, start = CLOSED_GROWTH, CLOSED_START
     if optimizer == "levenberg-marquardt":
         growth, start = _trust_region(measures, decide)
     batch = _batch(spec, method, optimizer, parameters, effects, layout, sensors, measures, decide)
     steps = Steps(optimizer=optimizer, learning_rate=spec.learning_rate,
                   final_learning_rate_ratio=spec.final_learning_rate_ratio, iterations=spec.iterations,
-                  betas=spec.adam_betas, damping=spec.damping, curvature=spec.hessian,
+                  betas=spec.adam_betas, damping=spec.damping, curvature=curvature(spec, optimizer, pose, decide),
                   curvature_every=spec.jacobian_every, trust_growth=growth, trust_start=start)
     stop = _stop(spec, optimizer, decide)
+    blur = resolve_blur(spec, pose=pose, shape=bool(spans), film=measures.film() if pose or spans else (0, 0),
+                        decide=decide)
     blocks = _texture_blocks(spec, parameters, measures, decide) if parameters.has_textures else ()
     radiance, differential = _fields(spec, method, planned_for, effects, depth)
     return Recipe(method=method, jacobian=spec.jacobian, fields_for=planned_for, depth=depth, effects=effects,
                   layout=layout, steps=steps, batch=batch, stop=stop, decisions=tuple(decisions),
                   warnings=tuple(warnings), texture_blocks=blocks, radiance=radiance, differential=differential,
-                  step_units=units, uniform=spans if optimizer == "adam" else ())
-
-
-def _geometry_method(spec: JobSpec, measures: Measures, decide) -> str:
-    """The method of a job that moves a shape: the job's, when it can differentiate a moving
-    silhouette (else :class:`InvalidJob` with the reason), or ``auto``'s projective integrator."""
-    if spec.method != AUTO:
-        refusal = method_class(str(spec.method)).geometry_refusal
-        if refusal is not None:
-            raise InvalidJob("method", f"{spec.method} cannot optimize geometry (a shape's pose or vertices): "
-                                       f"{refusal}; use "
-                                       f"prb_projective or direct_projective (or method auto)")
-        if spec.jacobian == "differential-field":
-            raise InvalidJob("jacobian", "jacobian 'differential-field' is dL_theta's, which has no boundary term "
-                                         "for moving silhouettes: geometry takes the method's own Jacobian")
-        return str(spec.method)
-    if spec.jacobian == "differential-field":
-        raise InvalidJob("jacobian", "jacobian 'differential-field' is dL_theta's, which has no boundary term for "
-                                     "moving silhouettes: geometry takes the method's own Jacobian")
-    missing = measures.missing_energy(DIRECT_DEPTH)
-    share = f"paths longer than direct illumination carry {missing:.2%} of the image's light"
-    if missing <= MISSING_ENERGY:
-        decide("method", str(Method.DIRECT_PROJECTIVE),
-               f"geometry (a shape's pose) needs the boundary term of moving silhouettes, which Mitsuba's projective "
-               f"integrators sample; {share} (at most {MISSING_ENERGY:.1%}): direct illumination is the image")
-        return str(Method.DIRECT_PROJECTIVE)
-    decide("method", str(Method.PRB_PROJECTIVE),
-           f"geometry (a shape's pose) needs the boundary term of moving silhouettes, which Mitsuba's projective "
-           f"integrators sample; {share} (more than {MISSING_ENERGY:.1%}): every bounce, or the candidates would "
-           f"miss light the targets have")
-    return str(Method.PRB_PROJECTIVE)
+                  step_units=units, uniform=spans if optimizer == "adam" else (), blur=blur)
 
 
 def _fields(spec: JobSpec, method: str, planned_for: str | None, effects: Effects | None,
@@ -376,19 +354,6 @@ def _optimizer(spec: JobSpec, method: str, parameters: Parameters, layout: Deriv
         decide("optimizer", "levenberg-marquardt", f"{cost}: Gauss-Newton steps in a trust region reach the answer "
                                                    f"in fewer iterations than Adam's learning-rate-limited steps")
         return "levenberg-marquardt"
-    return "adam"
-
-
-def _shape_optimizer(spec: JobSpec, spans: tuple[tuple[int, int], ...], decide) -> str:
-    """Adam, uniform per mesh, for a job that optimizes a mesh's vertices (module docstring)."""
-    scalars = sum(stop - start for start, stop in spans)
-    if spec.optimizer in SECOND_ORDER:
-        raise InvalidJob("optimizer", f"{spec.optimizer} needs the Jacobian of every scalar, and a mesh's vertices are "
-                                      f"{scalars} scalars (one forward render each per view): use adam or auto")
-    decide("optimizer", "adam", f"a mesh's vertices: {scalars} LargeSteps coordinates, whose Jacobian would cost one "
-                                f"forward render each per view; Adam on the adjoint gradient, one step scale per mesh "
-                                f"(uniform: the largest second moment, as mi.ad.Adam(uniform=True) in Mitsuba's shape "
-                                f"tutorial)" + ("" if spec.optimizer == "auto" else " (the job's optimizer)"))
     return "adam"
 
 

@@ -120,6 +120,11 @@ class SceneMeasures:
         return self._measure(f"footprint {key}", lambda: texel_footprint(prepared.problem.scene, key, shape,
                                                                          sorted(prepared.targets)))
 
+    def film(self) -> tuple[int, int]:
+        scene = self.prepared.problem.scene
+        sizes = [scene.resolution(view) for view in sorted(self.prepared.targets)]
+        return min(w for w, _ in sizes), min(h for _, h in sizes)
+
     def missing_energy(self, depth: PathDepth) -> float:
         problem = self.prepared.problem
         return self._measure(f"missing_energy {depth.describe()}", lambda: missing_energy(

@@ -15,7 +15,7 @@ import numpy as np
 
 from schemas.job import JobSpec
 from services.solver.backend import describe_device
-from services.solver.estimators.losses import ImageLoss
+from services.solver.estimators.losses import BlurredLoss, ImageLoss
 from services.solver.optimize import checkpoint
 from services.solver.optimize.answer import Answer, answer_for
 from services.solver.optimize.build import Built
@@ -37,13 +37,20 @@ class RunState:
     events: list[Decision] = field(default_factory=list)   # decisions taken on the way
     images: ImageSchedule = field(default_factory=ImageSchedule)
     losses: dict[int, ImageLoss] = field(default_factory=dict)   # each view's loss (its target on the device)
+    blurred: dict[int, BlurredLoss] = field(default_factory=dict)  # each view's last blurred loss
 
-    def loss_of(self, prepared: Prepared, view: int) -> ImageLoss:
-        """The loss of ``view`` against its target (made once: the target is kept on the device)."""
+    def loss_of(self, prepared: Prepared, view: int, blur: float = 0.0) -> ImageLoss | BlurredLoss:
+        """The loss of ``view`` against its target (made once: the target is kept on the device),
+        on images blurred by ``blur`` pixels when > 0 (:mod:`.blur`; the blurred target is kept
+        while the blur stays the same)."""
         if view not in self.losses:
             self.losses[view] = ImageLoss(prepared.spec.loss, prepared.targets[view],
                                           prepared.problem.count_sanitized)
-        return self.losses[view]
+        if blur <= 0:
+            return self.losses[view]
+        if view not in self.blurred or self.blurred[view].sigma != blur:
+            self.blurred[view] = BlurredLoss(self.losses[view], blur)
+        return self.blurred[view]
 
     def advance(self, prepared: Prepared, updated: np.ndarray, views_offset: int) -> None:
         """Move to the next iteration at ``updated``: the one place the scene's parameters change."""

@@ -1,0 +1,80 @@
+"""What :func:`services.solver.optimize.resolve.resolve` decides for a job that moves a shape (a
+pose, a mesh's vertices): the method, a mesh's optimizer and the curvature of a pose's
+second-order steps (the rules are listed in that module's docstring; the loss's blur is
+:mod:`.blur`'s)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Protocol
+
+from schemas.errors import InvalidJob
+from schemas.job import SECOND_ORDER, JobSpec
+from schemas.methods import AUTO, Method
+from services.solver.estimators.methods import method_class
+
+if TYPE_CHECKING:
+    from services.solver.estimators.render import PathDepth
+
+
+class Measures(Protocol):
+    """What :func:`geometry_method` measures (of :class:`services.solver.optimize.resolve.Measures`)."""
+
+    def missing_energy(self, depth: PathDepth) -> float:
+        """The share of the image's light a truncated path ``depth`` misses."""
+
+
+def geometry_method(spec: JobSpec, measures: Measures, decide, *, direct: PathDepth, limit: float) -> str:
+    """The method of a job that moves a shape: the job's, when it can differentiate a moving
+    silhouette (else :class:`InvalidJob` with the reason), or ``auto``'s projective integrator:
+    ``direct_projective`` where paths longer than ``direct`` carry at most ``limit`` of the light."""
+    if spec.method != AUTO:
+        refusal = method_class(str(spec.method)).geometry_refusal
+        if refusal is not None:
+            raise InvalidJob("method", f"{spec.method} cannot optimize geometry (a shape's pose or vertices): "
+                                       f"{refusal}; use "
+                                       f"prb_projective or direct_projective (or method auto)")
+        if spec.jacobian == "differential-field":
+            raise InvalidJob("jacobian", "jacobian 'differential-field' is dL_theta's, which has no boundary term "
+                                         "for moving silhouettes: geometry takes the method's own Jacobian")
+        return str(spec.method)
+    if spec.jacobian == "differential-field":
+        raise InvalidJob("jacobian", "jacobian 'differential-field' is dL_theta's, which has no boundary term for "
+                                     "moving silhouettes: geometry takes the method's own Jacobian")
+    missing = measures.missing_energy(direct)
+    share = f"paths longer than direct illumination carry {missing:.2%} of the image's light"
+    if missing <= limit:
+        decide("method", str(Method.DIRECT_PROJECTIVE),
+               f"geometry (a shape's pose) needs the boundary term of moving silhouettes, which Mitsuba's projective "
+               f"integrators sample; {share} (at most {limit:.1%}): direct illumination is the image")
+        return str(Method.DIRECT_PROJECTIVE)
+    decide("method", str(Method.PRB_PROJECTIVE),
+           f"geometry (a shape's pose) needs the boundary term of moving silhouettes, which Mitsuba's projective "
+           f"integrators sample; {share} (more than {limit:.1%}): every bounce, or the candidates would "
+           f"miss light the targets have")
+    return str(Method.PRB_PROJECTIVE)
+
+
+def shape_optimizer(spec: JobSpec, spans: tuple[tuple[int, int], ...], decide) -> str:
+    """Adam, uniform per mesh, for a job that optimizes a mesh's vertices (module docstring)."""
+    scalars = sum(stop - start for start, stop in spans)
+    if spec.optimizer in SECOND_ORDER:
+        raise InvalidJob("optimizer", f"{spec.optimizer} needs the Jacobian of every scalar, and a mesh's vertices are "
+                                      f"{scalars} scalars (one forward render each per view): use adam or auto")
+    decide("optimizer", "adam", f"a mesh's vertices: {scalars} LargeSteps coordinates, whose Jacobian would cost one "
+                                f"forward render each per view; Adam on the adjoint gradient, one step scale per mesh "
+                                f"(uniform: the largest second moment, as mi.ad.Adam(uniform=True) in Mitsuba's shape "
+                                f"tutorial)" + ("" if spec.optimizer == "auto" else " (the job's optimizer)"))
+    return "adam"
+
+
+def curvature(spec: JobSpec, optimizer: str, pose: bool, decide) -> str:
+    """The job's ``hessian``, ``auto`` resolved: ``cross`` for a pose's second-order steps, else
+    ``successive``."""
+    if spec.hessian != "auto":
+        return spec.hessian
+    if pose and optimizer != "adam":
+        decide("curvature", "cross", "a pose: its Jacobian changes as the silhouettes move, so the successive "
+                                     "curvature would mostly fall back to the product, which J's noise biases upwards "
+                                     "and which shortens the steps; two independent Jacobians per view instead")
+        return "cross"
+    return "successive"
