@@ -358,16 +358,16 @@ class JobSpec(_Strict):
                                                              "to largest curvature, or it damps exactly the valley "
                                                              "direction the step is for.")
     hessian: Literal["auto", "successive", "product", "cross"] = Field(
-        "auto", description="Curvature from the Jacobian J. 'auto': 'cross' for a pose (its Jacobian changes as "
-                            "silhouettes move, so 'successive' would mostly fall back to the biased product), "
-                            "else 'successive'. 'product' (2/n) J^T J from one estimate, biased "
-                                  "upwards by J's Monte Carlo variance, which damps the valley direction (most "
-                                  "where the signal is weak, as for an object seen only in reflections); 'cross' "
-                                  "(1/n)(J_a^T J_b + J_b^T J_a) from two independent estimates, unbiased, one more "
-                                  "Jacobian per view; 'successive': the cross product of the view's Jacobian with "
-                                  "its previous one (independent samples, nearby parameters): unbiased where J "
-                                  "changes slowly and free; the product for a view's first Jacobian. Indefinite "
-                                  "estimates have their eigenvalues raised to 1e-6 of the largest.")
+        "auto", description="Curvature from the Jacobian J. 'auto': 'cross' for a pose whose loss is blurred "
+                            "(geometry.blur_px; its Jacobian changes as silhouettes move, so 'successive' would "
+                            "mostly fall back to the biased product), else 'successive'. 'product': (2/n) J^T J "
+                            "from one estimate, biased upwards by J's Monte Carlo variance, which damps the valley "
+                            "direction (most where the signal is weak, as for an object seen only in reflections); "
+                            "'cross': (1/n)(J_a^T J_b + J_b^T J_a) from two independent estimates, unbiased, one "
+                            "more Jacobian per view; 'successive': the cross product of the view's Jacobian with its "
+                            "previous one (independent samples, nearby parameters): unbiased where J changes slowly "
+                            "and free; the product for a view's first Jacobian. Indefinite estimates have their "
+                            "eigenvalues raised to 1e-6 of the largest.")
     final_learning_rate_ratio: float = Field(
         0.1, gt=0, le=1.0, description="Learning rate of the last iteration as a fraction of learning_rate "
                                        "(geometric decay; 1 keeps it constant). Noisy gradients need the decay "

@@ -61,11 +61,11 @@ def _spec(**geometry) -> JobSpec:
 
 def test_a_pose_is_blurred_by_default_and_vertex_positions_are_not():
     decisions = []
-    schedule = resolve_blur(_spec(), pose=True, shape=False, film=(64, 48), decide=lambda *d: decisions.append(d))
+    schedule = resolve_blur(_spec(), pose=True, shape=False, film=lambda: (64, 48), decide=lambda *d: decisions.append(d))
     assert schedule == BlurSchedule(start=3.0, end=1.0, until=8) and decisions[0][:2] == ("blur", 3.0)
-    assert resolve_blur(_spec(), pose=False, shape=True, film=(64, 64), decide=lambda *d: None) is None
-    assert resolve_blur(_spec(), pose=True, shape=False, film=(32, 24), decide=lambda *d: None) is None   # too small
-    assert resolve_blur(_spec(blur_px=0), pose=True, shape=False, film=(64, 64), decide=lambda *d: None) is None
-    assert resolve_blur(_spec(blur_px=2, blur_end_px=0, blur_share=0.5), pose=False, shape=True, film=(64, 64),
+    assert resolve_blur(_spec(), pose=False, shape=True, film=lambda: (64, 64), decide=lambda *d: None) is None
+    assert resolve_blur(_spec(), pose=True, shape=False, film=lambda: (32, 24), decide=lambda *d: None) is None   # too small
+    assert resolve_blur(_spec(blur_px=0), pose=True, shape=False, film=lambda: (64, 64), decide=lambda *d: None) is None
+    assert resolve_blur(_spec(blur_px=2, blur_end_px=0, blur_share=0.5), pose=False, shape=True, film=lambda: (64, 64),
                         decide=lambda *d: None) == BlurSchedule(2.0, 0.0, 10)
-    assert resolve_blur(_spec(), pose=False, shape=False, film=(64, 64), decide=lambda *d: None) is None
+    assert resolve_blur(_spec(), pose=False, shape=False, film=lambda: (64, 64), decide=lambda *d: None) is None

@@ -20,6 +20,7 @@ the sharp loss after a blurred phase threw the translation from 0.004 back to 0.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from schemas.job import JobSpec
@@ -52,9 +53,11 @@ class BlurSchedule:
         return {"start_px": self.start, "end_px": self.end, "until_iteration": self.until}
 
 
-def resolve_blur(spec: JobSpec, pose: bool, shape: bool, film: tuple[int, int], decide) -> BlurSchedule | None:
+def resolve_blur(spec: JobSpec, pose: bool, shape: bool, film: Callable[[], tuple[int, int]],
+                 decide) -> BlurSchedule | None:
     """The blur of a geometry job (None: none), with the decision and its reason. ``pose``/``shape``:
-    whether the job optimizes a pose / vertex positions; ``film``: the smallest film's (width, height)."""
+    whether the job optimizes a pose / vertex positions; ``film()``: the smallest target view's
+    (width, height), asked only for a pose's ``auto``."""
     settings = spec.geometry
     if not (pose or shape):
         return None
@@ -62,12 +65,13 @@ def resolve_blur(spec: JobSpec, pose: bool, shape: bool, film: tuple[int, int], 
         if not pose:
             decide("blur", 0.0, "vertex positions: no blur (their LargeSteps steps already move whole regions)")
             return None
-        if min(film) < AUTO_MIN_FILM:
-            decide("blur", 0.0, f"a film of {min(film)} px (under {AUTO_MIN_FILM}): a blur would erase what tells a "
+        side = min(film())
+        if side < AUTO_MIN_FILM:
+            decide("blur", 0.0, f"a film of {side} px (under {AUTO_MIN_FILM}): a blur would erase what tells a "
                                 f"pose's rotations apart; the loss compares sharp images")
             return None
-        start = round(min(film) * AUTO_SHARE, 2)
-        reason = (f"a pose: coarse to fine, a Gaussian of {start:g} px (a sixteenth of the film's {min(film)} px) "
+        start = round(side * AUTO_SHARE, 2)
+        reason = (f"a pose: coarse to fine, a Gaussian of {start:g} px (a sixteenth of the film's {side} px) "
                   f"narrowing to {settings.blur_end_px:g} px over the first {settings.blur_share:.0%} of the "
                   f"iterations, so that a pose far from its target still overlaps it in the loss")
     else:

@@ -212,13 +212,13 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
     if optimizer == "levenberg-marquardt":
         growth, start = _trust_region(measures, decide)
     batch = _batch(spec, method, optimizer, parameters, effects, layout, sensors, measures, decide)
+    blur = resolve_blur(spec, pose=pose, shape=bool(spans), film=lambda: measures.film(), decide=decide)
     steps = Steps(optimizer=optimizer, learning_rate=spec.learning_rate,
                   final_learning_rate_ratio=spec.final_learning_rate_ratio, iterations=spec.iterations,
-                  betas=spec.adam_betas, damping=spec.damping, curvature=curvature(spec, optimizer, pose, decide),
+                  betas=spec.adam_betas, damping=spec.damping,
+                  curvature=curvature(spec, optimizer, blur is not None and pose, decide),
                   curvature_every=spec.jacobian_every, trust_growth=growth, trust_start=start)
     stop = _stop(spec, optimizer, decide)
-    blur = resolve_blur(spec, pose=pose, shape=bool(spans), film=measures.film() if pose or spans else (0, 0),
-                        decide=decide)
     blocks = _texture_blocks(spec, parameters, measures, decide) if parameters.has_textures else ()
     radiance, differential = _fields(spec, method, planned_for, effects, depth)
     return Recipe(method=method, jacobian=spec.jacobian, fields_for=planned_for, depth=depth, effects=effects,

@@ -67,14 +67,16 @@ def shape_optimizer(spec: JobSpec, spans: tuple[tuple[int, int], ...], decide) -
     return "adam"
 
 
-def curvature(spec: JobSpec, optimizer: str, pose: bool, decide) -> str:
-    """The job's ``hessian``, ``auto`` resolved: ``cross`` for a pose's second-order steps, else
-    ``successive``."""
+def curvature(spec: JobSpec, optimizer: str, blurred_pose: bool, decide) -> str:
+    """The job's ``hessian``, ``auto`` resolved: ``cross`` for the second-order steps of a pose
+    whose loss is blurred (:mod:`.blur`: films of 48 px and more), else ``successive``."""
     if spec.hessian != "auto":
         return spec.hessian
-    if pose and optimizer != "adam":
-        decide("curvature", "cross", "a pose: its Jacobian changes as the silhouettes move, so the successive "
-                                     "curvature would mostly fall back to the product, which J's noise biases upwards "
-                                     "and which shortens the steps; two independent Jacobians per view instead")
+    if blurred_pose and optimizer != "adam":
+        decide("curvature", "cross", "a pose on a blurred loss: its Jacobian changes as the silhouettes move, so the "
+                                     "successive curvature would mostly fall back to the product, which J's noise "
+                                     "biases upwards and which shortens the steps; two independent Jacobians per view "
+                                     "instead (on the bunny at 64x64: 2.0 degrees in 20 iterations where successive "
+                                     "left 9.9)")
         return "cross"
     return "successive"
