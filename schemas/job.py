@@ -402,7 +402,10 @@ class JobSpec(_Strict):
         """Hash of everything that changes the computation (not the name): a checkpoint is only
         loaded into the job it belongs to, and an Idempotency-Key only returns the same job. A job
         without ``warm_start``, with the default ``stop``, ``textures.resolution`` and ``geometry``
-        and no target meshes, hashes as before those fields existed."""
+        and no target meshes, hashes as before those fields existed; ``hessian: auto`` hashes as
+        ``successive``, the default it replaced (what it resolves to for every job but a blurred pose)."""
+        if self.hessian == "auto":
+            return self.model_copy(update={"hessian": "successive"}).fingerprint()
         exclude: dict = {"name": True} if self.warm_start is not None else {"name": True, "warm_start": True}
         if self.stop == StopSettings():      # later fields, at their defaults, hash as before they existed
             exclude["stop"] = True
