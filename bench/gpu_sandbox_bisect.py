@@ -72,7 +72,6 @@ def main() -> None:
     env = {**os.environ, "PARENT_MNT": namespaces()["mnt"], "PARENT_NET": namespaces()["net"],
            "PYTHONPATH": os.pathsep.join([str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")])}
     base = Path(tempfile.mkdtemp(prefix="bisect-"))
-    names = STEPS
     if "--mounts" in sys.argv:
         from concurrent.futures import ThreadPoolExecutor
 
@@ -89,7 +88,7 @@ def main() -> None:
         with ThreadPoolExecutor(8) as pool:
             print("\n".join(pool.map(one, _mount_points())), flush=True)
         return
-    for name in names:
+    for name in STEPS:
         work = base / name / "work"
         work.mkdir(parents=True)
         done = subprocess.run(["unshare", *ROOT_FLAGS, "--", sys.executable, __file__, name], cwd=work, env=env,

@@ -126,16 +126,16 @@ class BlurredLoss:
         if not sigma > 0:
             raise ValueError(f"a blurred loss needs sigma > 0 pixels, got {sigma} (use the ImageLoss itself)")
         self.kind, self.sigma, self.sanitized = loss.kind, float(sigma), loss.sanitized
-        self._blurred_target = blur(loss.target, self.sigma)
+        self.target = blur(loss.target, self.sigma)    # the image it compares against: G t
 
     def __call__(self, image: np.ndarray) -> tuple[float, np.ndarray]:
-        if image.shape != self._blurred_target.shape:
-            raise ValueError(f"image {image.shape} and target {self._blurred_target.shape} differ in shape")
+        if image.shape != self.target.shape:
+            raise ValueError(f"image {image.shape} and target {self.target.shape} differ in shape")
         bad = ~np.isfinite(image)
         if bad.any():
             self.sanitized(self.WHERE, int(bad.sum()))
             image = np.where(bad, 0.0, image)
-        diff = blur(image, self.sigma) - self._blurred_target
+        diff = blur(image, self.sigma) - self.target
         n = diff.size
         if self.kind == "l2":
             return float(np.mean(diff ** 2)), blur(2.0 * diff / n, self.sigma).astype(np.float32)

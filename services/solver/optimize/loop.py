@@ -316,8 +316,8 @@ class InverseRenderingRun:
             for view, candidate in estimate.candidates.items():
                 jacobian = estimate.jacobians.get(view)
                 loss = state.loss_of(prepared, view, recipe.blur_at(k))   # the residual of its images, as J
-                state.answer.residual(k, view, block_residual(loss.image(candidate), loss.image(prepared.targets[view]),
-                                                              block), None if jacobian is None else jacobian[0])
+                state.answer.residual(k, view, block_residual(loss.image(candidate), loss.target, block),
+                                      None if jacobian is None else jacobian[0])
         weight = len(estimate.candidates) * state.batch.gradient_spp
         state.answer.observe(state.parameters, estimate.dz_dp, weight, None if curvature is None else curvature.hessian)
         return state.answer.estimate()
