@@ -220,6 +220,9 @@ class EffectOverrides(_Strict):
 
 # --------------------------------------------------------------------------------- geometry
 
+#: The remeshing schedule's fields: at their defaults they hash as before they existed.
+REMESH_FIELDS = {"remesh_at", "remesh_edge", "remesh_passes"}
+
 class GeometrySettings(_Strict):
     """How geometry parameters (a pose, ``<shape id>.vertex_positions``) are optimized (ignored by
     jobs without one; ``services.solver.scene.shape``, ``services.solver.optimize.blur``)."""
@@ -241,6 +244,26 @@ class GeometrySettings(_Strict):
                                           "Laplacian, and the vertices are v = (I + λ L)^-1 u, so a gradient on a few "
                                           "silhouette vertices moves their neighbourhood smoothly. Larger: smoother "
                                           "steps (raise it with the mesh's resolution); 0: the vertices themselves.")
+    remesh_at: list[Annotated[int, Field(ge=1, le=100000)]] = Field(
+        default_factory=list, max_length=16,
+        description="Iterations before which every optimized mesh is remeshed (Botsch-Kobbelt isotropic remeshing, as "
+                    "Mitsuba's shape tutorial does between its two stages): the mesh of the run's estimate is remeshed "
+                    "to edges of remesh_edge times its mean edge length, its LargeSteps operator is rebuilt on the new "
+                    "triangles, and the optimizer, its learning-rate decay and the answer start again from there. "
+                    "Each in [1, iterations - 1]; a job with a shape parameter only. Empty: the triangles stay as "
+                    "loaded.")
+    remesh_edge: float = Field(0.5, ge=0.25, le=4.0, description="The remeshed edge length, as a multiple of the mesh's "
+                                                                 "mean edge length at the remesh (0.5, the tutorial's: "
+                                                                 "edges halved, about four times the vertices).")
+    remesh_passes: int = Field(5, ge=1, le=20, description="Passes of split, collapse, flip and relaxation of the "
+                                                            "remeshing (the tutorial's 5).")
+
+    @field_validator("remesh_at")
+    @classmethod
+    def _remesh_sorted(cls, at):
+        if list(at) != sorted(set(at)):
+            raise ValueError(f"remesh_at must be increasing iterations without repeats, got {list(at)}")
+        return at
 
 
 # --------------------------------------------------------------------------------- textures
@@ -402,7 +425,7 @@ class JobSpec(_Strict):
         """Hash of everything that changes the computation (not the name): a checkpoint is only
         loaded into the job it belongs to, and an Idempotency-Key only returns the same job. A job
         without ``warm_start``, with the default ``stop``, ``textures.resolution`` and ``geometry``
-        and no target meshes, hashes as before those fields existed; ``hessian: auto`` hashes as
+        (or its remeshing schedule) and no target meshes, hashes as before those fields existed; ``hessian: auto`` hashes as
         ``successive``, the default it replaced (what it resolves to for every job but a blurred pose)."""
         if self.hessian == "auto":
             return self.model_copy(update={"hessian": "successive"}).fingerprint()
@@ -413,6 +436,8 @@ class JobSpec(_Strict):
             exclude["textures"] = {"resolution"}
         if self.geometry == GeometrySettings():
             exclude["geometry"] = True
+        elif self.geometry.model_dump(include=REMESH_FIELDS) == GeometrySettings().model_dump(include=REMESH_FIELDS):
+            exclude["geometry"] = REMESH_FIELDS
         if isinstance(self.targets, SyntheticTargets) and not self.targets.synthetic.meshes:
             exclude["targets"] = {"synthetic": {"meshes"}}
         return hashlib.sha256(self.model_dump_json(exclude=exclude).encode()).hexdigest()[:16]
@@ -438,6 +463,14 @@ class JobSpec(_Strict):
             unused = [s for s in meshes if f"{s}.vertex_positions" not in keys]
             if unused:
                 raise ValueError(f"targets.synthetic.meshes names {unused}, whose vertex_positions are not parameters")
+        if self.geometry.remesh_at:
+            if not any(k.endswith(".vertex_positions") for k in keys):
+                raise ValueError("geometry.remesh_at remeshes optimized meshes: the job has no shape parameter "
+                                 "(<shape id>.vertex_positions)")
+            late = [k for k in self.geometry.remesh_at if k >= self.iterations]
+            if late:
+                raise ValueError(f"geometry.remesh_at {late}: a remesh comes before an iteration of the run, at most "
+                                 f"iterations - 1 = {self.iterations - 1}")
         if self.optimizer in SECOND_ORDER and self.loss != "l2":
             raise ValueError(f"optimizer {self.optimizer!r} models the l2 loss; got loss {self.loss!r}")
         if self.hessian not in ("auto", "successive") and self.optimizer == "adam":

@@ -131,8 +131,9 @@ class NewtonAnswer:
 
     kind = "newton"
 
-    def __init__(self, lower: np.ndarray, upper: np.ndarray, views: int = 1):
+    def __init__(self, lower: np.ndarray, upper: np.ndarray, views: int = 1, first: int = 0):
         self.lower, self.upper = np.asarray(lower, np.float64), np.asarray(upper, np.float64)
+        self.first = first     # the iteration of the first observation (a remeshed run's stage starts later)
         self.seen = 0
         self.floor = Floor(views)
         self.points: list[np.ndarray] = []
@@ -157,7 +158,7 @@ class NewtonAnswer:
         k = len(self.points)
         if k == 0:
             raise ValueError("no iteration observed")
-        last = self.seen - 1
+        last = self.first + self.seen - 1
         if k < MIN_WINDOW or not self.curvatures:
             return Estimate(self.points[-1], None, last, last, "last")
         p, g, w = np.array(self.points), np.array(self.gradients), np.array(self.weights)
@@ -190,13 +191,14 @@ class NewtonAnswer:
         self.floor.observe(k, view, residual, jacobian)
 
     def state_dict(self) -> dict:
-        return {"seen": self.seen, "points": np.array(self.points), "gradients": np.array(self.gradients),
+        return {"first": self.first, "seen": self.seen, "points": np.array(self.points),
+                "gradients": np.array(self.gradients),
                 "weights": np.array(self.weights), "curvatures": np.array(self.curvatures),
                 "floor": self.floor.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
         self.floor.load_state_dict(state["floor"])
-        self.seen = int(state["seen"])
+        self.first, self.seen = int(state.get("first", 0)), int(state["seen"])
         self.points = [np.asarray(v, np.float64) for v in state["points"]]
         self.gradients = [np.asarray(v, np.float64) for v in state["gradients"]]
         self.weights = [float(v) for v in state["weights"]]
@@ -210,8 +212,9 @@ class MeanAnswer:
 
     kind = "mean"
 
-    def __init__(self, lower: np.ndarray, upper: np.ndarray):
+    def __init__(self, lower: np.ndarray, upper: np.ndarray, first: int = 0):
         self.lower, self.upper = np.asarray(lower, np.float64), np.asarray(upper, np.float64)
+        self.first = first     # the iteration of the first observation (a remeshed run's stage starts later)
         self.seen = 0
         self.size = 1                                  # iterations per batch now
         self.sums: list[np.ndarray] = []               # Σ w_k p_k per batch
@@ -254,7 +257,7 @@ class MeanAnswer:
     def estimate(self) -> Estimate:
         if self.last is None:
             raise ValueError("no iteration observed")
-        last = self.seen - 1
+        last = self.first + self.seen - 1
         batches = len(self.counts)
         if self.seen < MIN_WINDOW or batches < 4:
             return Estimate(self.last, None, last, last, "last")
@@ -264,18 +267,19 @@ class MeanAnswer:
             recent = self._fit(half, batches)
             if length < 8 or consistent(self._fit(start, half, recent[2])[:2], recent[:2]):
                 values, variance, _ = self._fit(start, batches)
-                first = self.seen - sum(self.counts[start:])
+                first = self.first + self.seen - sum(self.counts[start:])
                 return Estimate(np.clip(values, self.lower, self.upper), np.sqrt(np.clip(variance, 0.0, None)),
                                 first, last, self.kind)
             length = length * 3 // 4
         return Estimate(self.last, None, last, last, "last")
 
     def state_dict(self) -> dict:
-        return {"seen": self.seen, "size": self.size, "sums": np.array(self.sums), "totals": list(self.totals),
+        return {"first": self.first, "seen": self.seen, "size": self.size, "sums": np.array(self.sums),
+                "totals": list(self.totals),
                 "counts": list(self.counts), "last": self.last}
 
     def load_state_dict(self, state: dict) -> None:
-        self.seen, self.size = int(state["seen"]), int(state["size"])
+        self.first, self.seen, self.size = int(state.get("first", 0)), int(state["seen"]), int(state["size"])
         self.sums = [np.asarray(v, np.float64) for v in state["sums"]]
         self.totals = [float(v) for v in state["totals"]]
         self.counts = [int(v) for v in state["counts"]]
@@ -285,7 +289,7 @@ class MeanAnswer:
 Answer = NewtonAnswer | MeanAnswer
 
 
-def answer_for(second_order: bool, lower: np.ndarray, upper: np.ndarray, views: int = 1) -> Answer:
+def answer_for(second_order: bool, lower: np.ndarray, upper: np.ndarray, views: int = 1, first: int = 0) -> Answer:
     """The answer of a run whose steps have a curvature (``second_order``), or not, over ``views``
-    target views."""
-    return NewtonAnswer(lower, upper, views) if second_order else MeanAnswer(lower, upper)
+    target views, from iteration ``first`` on (0, or where a remeshed mesh's stage starts)."""
+    return NewtonAnswer(lower, upper, views, first) if second_order else MeanAnswer(lower, upper, first)

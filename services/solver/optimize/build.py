@@ -71,16 +71,24 @@ def build(prepared: Prepared, recipe: Recipe) -> Built:
     if render.candidate == "field" or render.first_hits == "cached":
         method = _cached(prepared, method, trainer, field_candidate=render.candidate == "field",
                          cached_lhs=render.first_hits == "cached")
-    steps = recipe.steps
-    optimizer = make_optimizer(steps.optimizer, problem.parameters.n, lr=steps.learning_rate, betas=steps.betas,
+    return Built(method, trainer, jacobian_method, build_optimizer(prepared, recipe))
+
+
+def build_optimizer(prepared: Prepared, recipe: Recipe) -> ParameterOptimizer:
+    """The recipe's update rule over the parameters as they are now: its steps measured in the
+    scalars' units and Adam's shared scales over each mesh's span, by the rules the recipe's
+    ``step_units`` and ``uniform`` record for the scalars as loaded (after a remesh the new
+    vertices have other spans, :mod:`.remeshing`)."""
+    steps, parameters = recipe.steps, prepared.problem.parameters
+    optimizer = make_optimizer(steps.optimizer, parameters.n, lr=steps.learning_rate, betas=steps.betas,
                                damping=steps.damping, trust_growth=steps.trust_growth, trust_start=steps.trust_start,
                                curvature=steps.curvature, curvature_every=steps.curvature_every,
                                views=len(prepared.targets))
     if recipe.step_units:
-        optimizer.units = np.asarray(recipe.step_units, np.float64)
+        optimizer.units = np.asarray(parameters.step_units(), np.float64)
     if recipe.uniform and isinstance(optimizer, Adam):
-        optimizer.uniform = recipe.uniform
-    return Built(method, trainer, jacobian_method, optimizer)
+        optimizer.uniform = tuple(parameters.shape_spans())
+    return optimizer
 
 
 def _cached(prepared: Prepared, method: GradientMethod, trainer: FieldTrainer | None, *, field_candidate: bool,

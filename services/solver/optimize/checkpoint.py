@@ -7,7 +7,8 @@ Jacobians, block-averaged), the position in the stream of views and the batch (v
 gradient spp), the run's events (decisions taken on the way), the answer's iterations
 (:mod:`.answer`), both fields and their optimizers (via
 ``FieldTrainer.state_dict``, which includes the training-step counter that every sample seed
-derives from), torch's RNG state, the gradient method that ran, and a fingerprint of the job so
+derives from), torch's RNG state, the gradient method that ran, the triangles of a remeshed mesh
+(:mod:`.remeshing`), and a fingerprint of the job so
 that a checkpoint is never loaded into a different job. It is read with ``weights_only=True``:
 tensors and plain data only, so a checkpoint from the store cannot run code.
 """
@@ -24,7 +25,8 @@ from schemas.job import JobSpec
 
 def dumps(*, spec: JobSpec, next_iteration: int, parameters: np.ndarray, optimizer: dict, trainer: dict | None,
           views_offset: int = 0, batch: tuple[int, int, int] = (1, 1, 1), events: list[dict] | None = None,
-          answer: dict | None = None, attempt: str | None = None, method: str | None = None) -> bytes:
+          answer: dict | None = None, attempt: str | None = None, method: str | None = None,
+          meshes: dict | None = None) -> bytes:
     state = {
         "fingerprint": spec.fingerprint(),
         "method": method,
@@ -38,6 +40,7 @@ def dumps(*, spec: JobSpec, next_iteration: int, parameters: np.ndarray, optimiz
         "trainer": trainer,
         "torch_rng": torch.get_rng_state(),
         "attempt": attempt,
+        "meshes": _tensors(meshes),   # remeshed meshes' vertices and faces (:mod:`.remeshing`)
     }
     buffer = io.BytesIO()
     torch.save(state, buffer)

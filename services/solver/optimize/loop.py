@@ -42,6 +42,7 @@ from services.solver.optimize.floor import block_residual
 from services.solver.optimize.images import render_views, silhouette_views
 from services.solver.optimize.recipe import Decision, Recipe
 from services.solver.optimize.regularize import regularized
+from services.solver.optimize.remeshing import adopt, remesh_run, topology
 from services.solver.optimize.report import RunAborted, RunOutcome, RunReporter, StopReason
 from services.solver.optimize.resolve import resolve, undetermined_texels
 from services.solver.optimize.setup import Prepared, prepare
@@ -155,12 +156,15 @@ class InverseRenderingRun:
             built = build(prepared, recipe)
             state = self._initial_state(prepared, recipe, built)
             self._report_plan(prepared, recipe, built, state)
+            if prepared.problem.parameters.has_geometry:   # the target's silhouettes, before a remesh changes the layout
+                silhouette_views(prepared, state.parameters, self._target_silhouettes)
             self.reporter.targets(prepared.targets)
             if prepared.textures.targets(prepared.target_values):   # final/<key>.target, for comparison
                 self.reporter.textures(None, prepared.textures.targets(prepared.target_values))
             views = ViewStream(sorted(prepared.targets), derive_seed(self.spec.seed, "batches"))
             while not self._stopped(state) and state.next_iteration < self.spec.iterations:
                 self._stop_if_asked()
+                self._remesh_if_due(state.next_iteration, prepared, recipe, built, state)
                 answer = self._iteration(state.next_iteration, prepared, recipe, built, views, state)
                 reason = recipe.stop.reason(answer)
                 if reason is not None or state.next_iteration == self.spec.iterations:
@@ -169,7 +173,7 @@ class InverseRenderingRun:
                         f"the cap of {self.spec.iterations} iterations (the job's iterations)"), k))
                     self._report_plan(prepared, recipe, built, state)
                 if state.next_iteration % self.spec.checkpoint_every == 0 or self._stopped(state):
-                    self.reporter.checkpoint(save(self.spec, state, built, recipe.method), state.next_iteration)
+                    self.reporter.checkpoint(self._save(prepared, recipe, built, state), state.next_iteration)
             if prepared.textures:
                 undetermined = undetermined_texels(recipe, measures, dict(prepared.problem.parameters.textures))
                 self.reporter.textures(None, final_textures(prepared.textures, state, undetermined))
@@ -182,7 +186,7 @@ class InverseRenderingRun:
             log.info("run %s at iteration %s", stop.reason, state.next_iteration if state else 0)
             if stop.reason == Outcome.INTERRUPTED:
                 if state is not None:
-                    self.reporter.checkpoint(save(self.spec, state, built, recipe.method), state.next_iteration)
+                    self.reporter.checkpoint(self._save(prepared, recipe, built, state), state.next_iteration)
                 return self._outcome(Outcome.INTERRUPTED, state, started)
             return self._outcome(Outcome.CANCELED, state, started)
         except InvalidJob as exc:
@@ -206,10 +210,24 @@ class InverseRenderingRun:
         if reason:
             raise Stopped(reason)
 
+    def _save(self, prepared: Prepared, recipe: Recipe, built: Built, state: RunState) -> bytes:
+        return save(self.spec, state, built, recipe.method, meshes=topology(prepared, state))
+
+    def _remesh_if_due(self, k: int, prepared: Prepared, recipe: Recipe, built: Built, state: RunState) -> None:
+        """Before iteration ``k``: the recipe's remesh, when one is due (:mod:`.remeshing`)."""
+        if recipe.remesh is None or k not in recipe.remesh.at or state.last_remesh >= k:
+            return
+        self.reporter.progress("remeshing", {"iteration": k})
+        state.events.append(remesh_run(k, prepared, recipe, built, state))
+        self.listed = prepared.textures
+        self._report_plan(prepared, recipe, built, state)
+
     def _initial_state(self, prepared: Prepared, recipe: Recipe, built: Built) -> RunState:
         state = initial_state(prepared, recipe)
         if self.resume is not None:
-            restore(self.spec, self.resume, state, built)
+            restore(self.spec, self.resume, state, built, remeshed=lambda meshes, first: adopt(
+                meshes, state.parameters, prepared, recipe, built, state, first=first))
+            self.listed = prepared.textures
             self.reporter.progress("resumed", {"iteration": state.next_iteration,
                                                "training_steps": built.trainer.steps if built.trainer else 0})
         elif self.warm is not None:

@@ -43,13 +43,18 @@ class Steps:
     curvature_every: int             # the job's ``jacobian_every``
     trust_growth: float              # Levenberg-Marquardt's growth of the trust radius
     trust_start: float               # and its first radius, in learning rates
+    restarts: tuple[int, ...] = ()   # iterations where a new stage starts (a remesh: :class:`Remesh`)
 
     def learning_rate_at(self, k: int) -> float:
-        """Geometric decay from ``learning_rate`` at iteration 0 to ``learning_rate ·
-        final_learning_rate_ratio`` at the last iteration."""
-        if self.iterations <= 1:
+        """Geometric decay over the stage of iteration ``k``: from ``learning_rate`` at its first
+        iteration ``s`` to ``learning_rate · final_learning_rate_ratio`` at its last ``e``
+        (``lr_k = lr · ratio^((k - s) / (e - s))``). One stage, ``[0, iterations - 1]``, unless
+        ``restarts`` cut the run into several (each remeshed mesh starts its own optimization)."""
+        start = max((r for r in self.restarts if r <= k), default=0)
+        end = min((r for r in self.restarts if r > k), default=self.iterations) - 1
+        if end <= start:
             return self.learning_rate
-        return self.learning_rate * self.final_learning_rate_ratio ** (k / (self.iterations - 1))
+        return self.learning_rate * self.final_learning_rate_ratio ** ((k - start) / (end - start))
 
     @property
     def second_order(self) -> bool:
@@ -100,6 +105,20 @@ class BatchNow:
 
 
 @dataclass(frozen=True)
+class Remesh:
+    """A shape job's remeshing schedule (the job's ``geometry.remesh_at``,
+    :mod:`services.solver.optimize.remeshing`): before each iteration of ``at``, every optimized
+    mesh is remeshed to edges of ``edge`` times its mean edge length in ``passes`` passes."""
+
+    at: tuple[int, ...]
+    edge: float
+    passes: int
+
+    def to_json(self) -> dict:
+        return {"at": list(self.at), "edge": self.edge, "passes": self.passes}
+
+
+@dataclass(frozen=True)
 class Recipe:
     """Everything a run will do (module docstring).
 
@@ -135,6 +154,10 @@ class Recipe:
     uniform: tuple[tuple[int, int], ...] = ()
     #: a geometry job's coarse-to-fine blur of the loss (:mod:`.blur`; None: sharp images)
     blur: BlurSchedule | None = None
+    #: a shape job's remeshing schedule (None: the triangles stay as loaded). ``layout``,
+    #: ``step_units`` and ``uniform`` describe the scalars as loaded; after a remesh the run
+    #: derives them again, by the same rules, for the new vertices (:mod:`.remeshing`)
+    remesh: Remesh | None = None
 
     def blur_at(self, k: int) -> float:
         """The loss's blur at iteration ``k``, in pixels (0: none)."""
@@ -151,4 +174,5 @@ class Recipe:
                 "fields": {"radiance": self.radiance, "differential": self.differential},
                 "step_units": list(self.step_units) or None, "uniform": [list(s) for s in self.uniform] or None,
                 "blur": None if self.blur is None else self.blur.to_json(),
+                "remesh": None if self.remesh is None else self.remesh.to_json(),
                 "decisions": [asdict(d) for d in self.decisions], "warnings": list(self.warnings)}

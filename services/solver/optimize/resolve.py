@@ -41,7 +41,9 @@ samples per pixel). The rules and what they rest on (``bench/results/``):
 * **A shape** (a mesh's vertices in LargeSteps coordinates, :mod:`services.solver.scene.shape`):
   the same methods, views and samples; Adam with one step scale per mesh (``uniform``, as
   Mitsuba's shape tutorial): its ``3 N`` scalars would take one forward render each for a
-  Jacobian, and per-entry scales would undo the parameterization's smoothing.
+  Jacobian, and per-entry scales would undo the parameterization's smoothing. The job's remeshing
+  schedule (``geometry.remesh_at``) cuts the run into stages, each with its own learning-rate
+  decay, and no stopping rule ends the run before its last stage.
 """
 
 from __future__ import annotations
@@ -60,7 +62,7 @@ from services.solver.estimators.methods.prb import channel_groups
 from services.solver.estimators.render import PathDepth
 from services.solver.optimize.blur import resolve_blur
 from services.solver.optimize.recipe import BatchRule, Decision, Recipe, Steps
-from services.solver.optimize.resolve_geometry import curvature, geometry_method, shape_optimizer
+from services.solver.optimize.resolve_geometry import curvature, geometry_method, remesh_schedule, shape_optimizer
 from services.solver.optimize.stopping import StopRule
 from services.solver.scene.effects import Effects, choose_effects
 from services.solver.scene.facts import SceneFacts
@@ -197,7 +199,7 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
         effects = choose_effects(measures.facts(), planned_for, method_class(planned_for).uses, spec.effects,
                                spec.training.delta_depth)
         warnings += effects.warnings
-    layout = _layout(parameters, effects, spec.effects.merge_channels)
+    layout = derivative_layout(parameters, effects, spec.effects.merge_channels)
     units = tuple(float(u) for u in parameters.step_units()) if parameters.has_geometry else ()
     if any(u != 1.0 for u in units):
         decide("step_units", ", ".join(f"{u:.4g}" for u in sorted(set(units))),
@@ -213,18 +215,20 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
         growth, start = _trust_region(measures, decide)
     batch = _batch(spec, method, optimizer, parameters, effects, layout, sensors, measures, decide)
     blur = resolve_blur(spec, pose=pose, shape=bool(spans), film=lambda: measures.film(), decide=decide)
+    remesh = remesh_schedule(spec, decide) if spans else None
     steps = Steps(optimizer=optimizer, learning_rate=spec.learning_rate,
                   final_learning_rate_ratio=spec.final_learning_rate_ratio, iterations=spec.iterations,
                   betas=spec.adam_betas, damping=spec.damping,
                   curvature=curvature(spec, optimizer, blur is not None and pose, decide),
-                  curvature_every=spec.jacobian_every, trust_growth=growth, trust_start=start)
-    stop = _stop(spec, optimizer, decide)
+                  curvature_every=spec.jacobian_every, trust_growth=growth, trust_start=start,
+                  restarts=remesh.at if remesh is not None else ())
+    stop = _stop(spec, optimizer, decide, not_before=remesh.at[-1] if remesh is not None else 0)
     blocks = _texture_blocks(spec, parameters, measures, decide) if parameters.has_textures else ()
     radiance, differential = _fields(spec, method, planned_for, effects, depth)
     return Recipe(method=method, jacobian=spec.jacobian, fields_for=planned_for, depth=depth, effects=effects,
                   layout=layout, steps=steps, batch=batch, stop=stop, decisions=tuple(decisions),
                   warnings=tuple(warnings), texture_blocks=blocks, radiance=radiance, differential=differential,
-                  step_units=units, uniform=spans if optimizer == "adam" else (), blur=blur)
+                  step_units=units, uniform=spans if optimizer == "adam" else (), blur=blur, remesh=remesh)
 
 
 def _fields(spec: JobSpec, method: str, planned_for: str | None, effects: Effects | None,
@@ -289,8 +293,9 @@ def _texture_blocks(spec: JobSpec, parameters: Parameters, measures: Measures, d
     return tuple(out)
 
 
-def _stop(spec: JobSpec, optimizer: str, decide) -> StopRule:
-    """When the run ends before ``iterations`` (:mod:`.stopping`)."""
+def _stop(spec: JobSpec, optimizer: str, decide, not_before: int = 0) -> StopRule:
+    """When the run ends before ``iterations`` (:mod:`.stopping`), never before ``not_before``
+    (a shape job's last remesh)."""
     asked = spec.stop
     auto = asked.auto and optimizer != "adam"
     if asked.auto and not auto:
@@ -299,10 +304,10 @@ def _stop(spec: JobSpec, optimizer: str, decide) -> StopRule:
     elif auto:
         decide("stop", "auto", f"when more iterations would not improve the answer (the run's noise under half of "
                                f"the floor the targets' noise leaves), at most {spec.iterations} iterations")
-    return StopRule(spec.iterations, asked.standard_error, asked.relative, auto)
+    return StopRule(spec.iterations, asked.standard_error, asked.relative, auto, not_before)
 
 
-def _layout(parameters: Parameters, effects: Effects | None, merge_channels: bool) -> DerivativeLayout:
+def derivative_layout(parameters: Parameters, effects: Effects | None, merge_channels: bool) -> DerivativeLayout:
     """The derivatives the run carries: the effects' active scalars and channels, else every scalar
     (each RGB component its own channel, or all three with ``merge_channels`` off)."""
     if effects is not None:

@@ -11,6 +11,7 @@ from schemas.errors import InvalidJob
 from schemas.job import SECOND_ORDER, JobSpec
 from schemas.methods import AUTO, Method
 from services.solver.estimators.methods import method_class
+from services.solver.optimize.recipe import Remesh
 
 if TYPE_CHECKING:
     from services.solver.estimators.render import PathDepth
@@ -80,3 +81,17 @@ def curvature(spec: JobSpec, optimizer: str, blurred_pose: bool, decide) -> str:
                                      "left 9.9)")
         return "cross"
     return "successive"
+
+
+def remesh_schedule(spec: JobSpec, decide) -> Remesh | None:
+    """The job's remeshing schedule (``geometry.remesh_at``; the schema has checked that the job
+    optimizes a mesh's vertices and that every remesh comes before an iteration), None without."""
+    geometry = spec.geometry
+    if not geometry.remesh_at:
+        return None
+    at = tuple(geometry.remesh_at)
+    decide("remesh", ", ".join(map(str, at)),
+           f"the job's geometry.remesh_at: before these iterations every optimized mesh is remeshed (Botsch-Kobbelt, "
+           f"{geometry.remesh_passes} passes) to edges of {geometry.remesh_edge:g} times its mean edge length, and the "
+           f"optimizer, its learning-rate decay and the answer start again on the new vertices")
+    return Remesh(at, geometry.remesh_edge, geometry.remesh_passes)

@@ -4,11 +4,12 @@ it, and what ``plan.json`` says of the run (:func:`describe`).
 A checkpoint (:mod:`.checkpoint`) holds the next iteration, the parameters, the optimizer's state
 (Adam's moments; Levenberg-Marquardt's trust radius and its curvature with each view's remembered
 Jacobians), the position in the stream of views, the batch in use, the answer's state, the
-run's events and the fields' trainer.
+run's events, the fields' trainer and the triangles of a remeshed mesh.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -52,6 +53,11 @@ class RunState:
             self.blurred[view] = BlurredLoss(self.losses[view], blur)
         return self.blurred[view]
 
+    @property
+    def last_remesh(self) -> int:
+        """The iteration of the run's last remesh (:mod:`.remeshing`), 0 when none."""
+        return remesh_iteration(self.events)
+
     def advance(self, prepared: Prepared, updated: np.ndarray, views_offset: int) -> None:
         """Move to the next iteration at ``updated``: the one place the scene's parameters change."""
         self.parameters = np.asarray(updated, np.float64)
@@ -60,31 +66,46 @@ class RunState:
         prepared.problem.parameters.assign(self.parameters)
 
 
+def remesh_iteration(events: list[Decision]) -> int:
+    """The iteration of the last ``remesh`` among ``events``, 0 when none."""
+    return max((int(e.iteration) for e in events if e.what == "remesh" and e.iteration is not None), default=0)
+
+
 def initial_state(prepared: Prepared, recipe: Recipe) -> RunState:
     """The state before the first iteration: the initial values, the recipe's first batch."""
     answer = answer_for(recipe.steps.second_order, prepared.lower, prepared.upper, len(prepared.targets))
     return RunState(0, prepared.init.copy(), BatchNow.first(recipe.batch), answer)
 
 
-def save(spec: JobSpec, state: RunState, built: Built, method: str) -> bytes:
-    """The checkpoint of ``state`` (module docstring)."""
+def save(spec: JobSpec, state: RunState, built: Built, method: str, meshes: dict | None = None) -> bytes:
+    """The checkpoint of ``state`` (module docstring), with the triangles of the ``meshes`` a
+    remesh replaced (:func:`.remeshing.topology`)."""
     trainer = built.trainer
     return checkpoint.dumps(spec=spec, next_iteration=state.next_iteration, parameters=state.parameters,
                             optimizer=built.optimizer.state_dict(), views_offset=state.views_offset,
                             batch=(state.batch.views, state.batch.spp, state.batch.gradient_spp),
                             events=[asdict(e) for e in state.events], answer=state.answer.state_dict(),
-                            trainer=None if trainer is None else trainer.state_dict(), method=method)
+                            trainer=None if trainer is None else trainer.state_dict(), method=method, meshes=meshes)
 
 
-def restore(spec: JobSpec, blob: bytes, state: RunState, built: Built) -> None:
+def restore(spec: JobSpec, blob: bytes, state: RunState, built: Built,
+            remeshed: Callable[[dict[str, tuple[np.ndarray, np.ndarray]], int], None] | None = None) -> None:
     """Continue from the checkpoint ``blob``: ``state`` and the built objects take its values.
-    A checkpoint of an older version keeps the curvature beside the optimizer's state."""
+    A checkpoint of an older version keeps the curvature beside the optimizer's state. A
+    checkpoint taken after a remesh gives its meshes (shape id -> vertices, faces) and the
+    remesh's iteration to ``remeshed`` first, which rebuilds what is sized by the parameters."""
     saved = checkpoint.loads(blob, spec)
+    state.events = [Decision(**e) for e in saved.get("events") or []]
+    if saved.get("meshes"):
+        if remeshed is None:
+            raise ValueError("the checkpoint holds remeshed meshes and nothing here can rebuild them")
+        first = state.last_remesh
+        remeshed({shape: (np.asarray(mesh["vertices"], np.float64), np.asarray(mesh["faces"], np.int64))
+                  for shape, mesh in saved["meshes"].items()}, first)
     state.next_iteration = saved["next_iteration"]
     state.parameters = np.asarray(saved["parameters"], np.float64)
     state.views_offset = int(saved["views_offset"])
     state.batch = BatchNow(*(int(v) for v in saved["batch"]))
-    state.events = [Decision(**e) for e in saved.get("events") or []]
     if saved.get("answer") is not None:
         state.answer.load_state_dict(saved["answer"])
     optimizer = dict(saved["optimizer"])

@@ -9,7 +9,8 @@ when more iterations would not improve its answer. Pure: it reads the answer onl
                     within 12% of the floor, and doubling the run would lower it by less than 6%
 
 Neither is judged before the answer averages :data:`SETTLED` iterations: a window of a few
-iterations has a standard error too noisy to act on.
+iterations has a standard error too noisy to act on, nor before a shape job's last remesh (the
+answer of a mesh about to be remeshed is not the run's).
 """
 
 from __future__ import annotations
@@ -37,10 +38,11 @@ class StopRule:
     standard_error: float | None
     relative: bool
     auto: bool
+    not_before: int = 0    # the last remesh's iteration: the run goes on at least to its new stage
 
     def reason(self, answer: Estimate) -> str | None:
         """Why the run should stop now, or None to go on."""
-        if answer.standard_error is None or answer.iterations < SETTLED:
+        if answer.standard_error is None or answer.iterations < SETTLED or answer.end < self.not_before:
             return None
         se = answer.standard_error
         if self.standard_error is not None:

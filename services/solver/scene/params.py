@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import drjit as dr
@@ -29,7 +29,7 @@ import mitsuba as mi
 import numpy as np
 
 from services.solver.scene.geometry import POSE_KEYS, ShapePose, mesh_shapes, refusal, split_key
-from services.solver.scene.shape import MeshReports, ShapeMesh, shape_of
+from services.solver.scene.shape import VERTICES, MeshReports, ShapeMesh, shape_of, write_topology
 
 Owner = Literal["bsdf", "emitter", "geometry"]
 
@@ -290,6 +290,20 @@ class ParameterSet(MeshReports):
                 out[geometry[0]][geometry[1]] = np.asarray(values[offset:offset + info.size], np.float64)
             offset += info.size
         return out
+
+    def remesh(self, shape: str, vertices: np.ndarray, faces: np.ndarray) -> ShapeMesh:
+        """Replace the optimized mesh ``shape`` by ``vertices`` ``(N', 3)`` and ``faces`` ``(F', 3)``
+        (a remesh, :mod:`.remesh`): the scene's mesh takes them, a LargeSteps operator of the same
+        λ is built on them, and the parameter's scalars become their ``3 N'`` differential
+        coordinates. ``n`` changes; the other parameters keep their order and values."""
+        old = self.shapes[shape]
+        write_topology(self.params, shape, vertices, faces)
+        mesh = self.shapes[shape] = ShapeMesh.of(self.params, shape, old.lambda_)
+        mesh.target = old.target
+        i = self.keys.index(f"{shape}.{VERTICES}")
+        self.infos[i] = replace(self.infos[i], size=mesh.size, value=tuple(mesh.centre))
+        self.n, self._scalars = sum(info.size for info in self.infos), None
+        return mesh
 
     def refuse(self, before: np.ndarray, after: np.ndarray) -> str | None:
         """Why the step from ``before`` to ``after`` (flat vectors) may not be written: non-finite

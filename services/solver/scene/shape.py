@@ -144,6 +144,26 @@ class MeshReports:
                 for shape, mesh in self.shapes.items()}
 
 
+def write_topology(params: mi.SceneParameters, shape: str, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Give the scene's mesh ``shape`` new triangles: ``vertices`` ``(N', 3)`` (world space) and
+    ``faces`` ``(F', 3)``, whatever ``N'`` and ``F'`` (Mitsuba rebuilds the mesh and its
+    acceleration structure on ``params.update()``, which this calls). Texture coordinates are
+    dropped (they belonged to the old triangles); a mesh with vertex normals gets them recomputed
+    from the new triangles."""
+    vertices = np.asarray(vertices, np.float32).reshape(-1, 3)
+    normals = f"{shape}.vertex_normals"
+    smooth = normals in params.keys() and dr.width(params[normals]) > 0   # noqa: SIM118 (not a dict)
+    params[f"{shape}.faces"] = mi.UInt(np.asarray(faces, np.uint32).ravel())
+    params[f"{shape}.{VERTICES}"] = mi.Float(vertices.ravel())
+    if normals in params.keys():   # noqa: SIM118
+        params[normals] = mi.Float(np.zeros(3 * len(vertices) if smooth else 0, np.float32))
+    if f"{shape}.vertex_texcoords" in params.keys():   # noqa: SIM118
+        params[f"{shape}.vertex_texcoords"] = mi.Float()
+    params.update()
+    if smooth:
+        params.properties[f"{shape}.{VERTICES}"][2].recompute_vertex_normals()   # the mesh (value, type, node, flags)
+
+
 def chamfer(a: np.ndarray, b: np.ndarray) -> float:
     """The symmetric Chamfer distance of two point sets ``a`` ``(N, 3)`` and ``b`` ``(M, 3)``: the
     mean over ``a`` of the distance to the nearest point of ``b`` and the same from ``b``,
