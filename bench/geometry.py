@@ -97,7 +97,8 @@ def run_product(job: dict, folder: Path) -> dict:
     final = summary.get("final") or [np.nan] * 6
     return {"seconds": seconds, "status": summary["status"], "error": summary.get("error"),
             "final": final, "final_error": pose_error(final), "curve": curve, "iterations": summary["iterations"],
-            "method": plan["recipe"]["method"], "optimizer": plan["recipe"]["optimizer"]}
+            "method": plan["recipe"]["method"], "optimizer": plan["recipe"]["optimizer"],
+            "standard_error": summary.get("standard_error"), "stopped": (summary.get("stopped") or {}).get("reason")}
 
 
 def run_loop(job: dict, shape: str, seconds: float, folder: Path) -> dict:
@@ -166,6 +167,8 @@ def main(argv: list[str] | None = None) -> None:
                                                               "examples/shape.json against the LargeSteps loop")
     parser.add_argument("--loop-guiding", default=None, help="--shape: the loop integrator's guiding "
                                                                   "(default: Mitsuba's; 'none' as the product)")
+    parser.add_argument("--no-loop", action="store_true", help="the product alone (a budget the loop was not "
+                                                               "raced at); the results file is named '-product'")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     from services.solver.backend import use_mitsuba
@@ -185,13 +188,17 @@ def main(argv: list[str] | None = None) -> None:
         for seed in (int(s) for s in args.seeds.split(",")):
             job = _job(scene, shape, args.resolution, args.iterations, seed)
             product = run_product(job, folder / f"product-{seed}")
-            loop = run_loop(job, shape, product["seconds"], folder)
-            runs.append({"seed": seed, "product": product, "loop": loop})
-            rows += [_row(f"product ({product['method']}, {product['optimizer']})", seed, product),
-                     _row("tutorial loop", seed, loop)]
-            log.info("seed %d: product %s, loop %s", seed, product["final_error"], loop["final_error"])
+            runs.append({"seed": seed, "product": product})
+            rows.append(_row(f"product ({product['method']}, {product['optimizer']})", seed, product))
+            if not args.no_loop:
+                loop = runs[-1]["loop"] = run_loop(job, shape, product["seconds"], folder)
+                rows.append(_row("tutorial loop", seed, loop))
+            log.info("seed %d: product %s, loop %s", seed, product["final_error"],
+                     runs[-1]["loop"]["final_error"] if "loop" in runs[-1] else "not run")
+    if args.no_loop:
+        name += f"-product-{args.iterations}"
     summary: dict[str, dict] = {}
-    for who in ("product", "loop"):
+    for who in ("product",) if args.no_loop else ("product", "loop"):
         errors = np.array([run[who]["final_error"] for run in runs], np.float64)
         summary[who] = {"translation_median": float(np.median(errors[:, 0])),
                         "translation_range": [float(errors[:, 0].min()), float(errors[:, 0].max())],
@@ -207,9 +214,10 @@ def main(argv: list[str] | None = None) -> None:
     medians = "\n".join(f"- {who}: translation {s['translation_median']:.4f} (range {s['translation_range'][0]:.4f}-"
                         f"{s['translation_range'][1]:.4f}), rotation {s['rotation_median']:.2f} deg (range "
                         f"{s['rotation_range'][0]:.2f}-{s['rotation_range'][1]:.2f})" for who, s in summary.items())
+    raced = ("Equal compute: the loop runs for the product's seconds of the same seed." if not args.no_loop else
+             "The product alone (--no-loop): the loop was not run at this budget.")
     text = (f"# Pose: the product's default against the tutorial loop ({name}, {args.resolution}x"
-            f"{args.resolution}, 2 views)\n\nEqual compute: the loop runs for the product's seconds of the same "
-            f"seed.\n\n{table}\n\nMedians over the seeds:\n\n{medians}\n")
+            f"{args.resolution}, 2 views)\n\n{raced}\n\n{table}\n\nMedians over the seeds:\n\n{medians}\n")
     write_markdown(args.out / f"geometry-{name}.md", "bench.geometry", argv, text)
 
 
