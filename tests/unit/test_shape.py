@@ -142,11 +142,12 @@ def test_the_gradient_matches_finite_differences(mi, sphere):
     of the radius at most) against central differences of the loss at ``u ± h δu`` (``h`` = 0.05:
     about a third of a pixel at the rim; renders at 1024 spp, same seeds on both sides), 16x16,
     the loss against a fixed render of the sphere stretched along x. Tolerance: the ratio
-    ``analytic / finite`` in [0.6, 1.25]. Measured: 0.77 (0.75-0.80 for h from 0.025 to 0.1; the
-    differences at 64 spp were a step function of h: 0.95 at h = 0.05, 1.98 at 0.02, 0.67 at
-    0.2). The boundary term falls short of the differences by about as much as the pose's
-    (test_geometry: 0.66 for a translation at 24x24), the open question of docs/guide/geometry.md.
-    Failed (Dr.Jit: the loss does not depend on the input) when the mesh's write detached ``u``."""
+    ``analytic / finite`` in [0.8, 1.2]. Measured: 0.95 (0.98 at h = 0.025, 0.89 at 0.1, where
+    the loss is no longer linear over the step). Failed at 0.77 (0.75-0.80 over h) when the
+    sphere was flat-shaded: its shading then jumps at every edge between two triangles, and the
+    motion of those jumps is a boundary term no projective integrator samples (they sample
+    visibility's only); failed (Dr.Jit: the loss does not depend on the input) when the mesh's
+    write detached ``u``."""
     import drjit as dr
 
     scene, parameters = sphere
@@ -180,7 +181,7 @@ def test_the_gradient_matches_finite_differences(mi, sphere):
     h = 0.05
     finite = np.mean([(loss(u0 + h * direction, s) - loss(u0 - h * direction, s)) / (2 * h) for s in range(2)])
     parameters.assign(u0)
-    assert 0.6 < analytic / finite < 1.25, (analytic, finite)
+    assert 0.8 < analytic / finite < 1.2, (analytic, finite)
 
 
 def test_a_shape_job_lowers_the_chamfer_distance(tmp_path):
@@ -263,3 +264,19 @@ def test_a_mesh_is_posed_or_reshaped_not_both(sphere):
     scene, _ = sphere
     with pytest.raises(ValueError, match="pose is optimized too"):
         ParameterSet(scene.params, [KEY, "sphere.to_world.translate"])
+
+
+def test_a_flat_shaded_mesh_is_named_in_the_plan(mi, sphere):
+    """``shape-sphere``'s icosphere carries vertex normals; ``pose-block``'s box is flat-shaded, and
+    the recipe of a job that moves it warns that the motion of its shading's jumps (its edges) is
+    not differentiated. Failed (['sphere']) while the icosphere was generated without normals."""
+    from services.solver.optimize.resolve_geometry import flat_shading_warning
+    from services.solver.scene.load import load_scene
+    from services.solver.scene.params import ParameterSet
+
+    _, parameters = sphere
+    assert parameters.flat_meshes() == [] and flat_shading_warning([]) is None
+    block = load_scene(builtin="pose-block", resolution=(8, 8))
+    posed = ParameterSet(block.params, ["block.to_world.translate"])
+    assert posed.flat_meshes() == ["block"]
+    assert "block: flat-shaded" in flat_shading_warning(posed.flat_meshes())

@@ -62,7 +62,13 @@ from services.solver.estimators.methods.prb import channel_groups
 from services.solver.estimators.render import PathDepth
 from services.solver.optimize.blur import resolve_blur
 from services.solver.optimize.recipe import BatchRule, Decision, Recipe, Steps
-from services.solver.optimize.resolve_geometry import curvature, geometry_method, remesh_schedule, shape_optimizer
+from services.solver.optimize.resolve_geometry import (
+    curvature,
+    flat_shading_warning,
+    geometry_method,
+    remesh_schedule,
+    shape_optimizer,
+)
 from services.solver.optimize.stopping import StopRule
 from services.solver.scene.effects import Effects, choose_effects
 from services.solver.scene.facts import SceneFacts
@@ -145,6 +151,9 @@ class Parameters(Protocol):
     def shape_spans(self) -> list[tuple[int, int]]:
         """``(start, stop)`` of each shape parameter (a mesh's vertices) in ``p``."""
 
+    def flat_meshes(self) -> list[str]:
+        """The posed or reshaped meshes without vertex normals."""
+
     @property
     def sizes(self) -> list[int]: ...
 
@@ -193,6 +202,8 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
             warnings.append(f"render.max_depth {depth.max_depth} misses {missing:.1%} of the image's light at the "
                             f"initial values (more where materials are brighter): the recovered parameters are "
                             f"biased; leave render.max_depth unset for unbounded paths with Russian roulette")
+    if parameters.has_geometry and (flat := flat_shading_warning(parameters.flat_meshes())) is not None:
+        warnings.append(flat)
     planned_for = fields_method(spec) if not parameters.has_geometry else None
     effects = None
     if planned_for is not None:

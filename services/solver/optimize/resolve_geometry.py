@@ -95,3 +95,17 @@ def remesh_schedule(spec: JobSpec, decide) -> Remesh | None:
            f"{geometry.remesh_passes} passes) to edges of {geometry.remesh_edge:g} times its mean edge length, and the "
            f"optimizer, its learning-rate decay and the answer start again on the new vertices")
     return Remesh(at, geometry.remesh_edge, geometry.remesh_passes)
+
+
+def flat_shading_warning(flat: list[str]) -> str | None:
+    """What a geometry job's flat-shaded meshes (``flat``: shape ids without vertex normals) cost,
+    or None. Their shading jumps at every edge between two triangles; the edges move with the
+    vertices, and the projective integrators sample the boundary terms of visibility (silhouettes,
+    shadows) only: the gradient misses those jumps' motion."""
+    if not flat:
+        return None
+    return (f"{', '.join(flat)}: flat-shaded (no vertex normals), so the shading jumps at every edge between two "
+            f"triangles, and the projective integrators differentiate only visibility's discontinuities, not the motion "
+            f"of these: the gradient falls short (on a flat-shaded icosphere 0.77 of finite differences, 0.95 with vertex "
+            f"normals). A smooth surface's mesh should carry vertex normals (Mitsuba computes them for a PLY or OBJ "
+            f"without, unless face_normals is set); a box's true edges stay flat, and their motion stays undifferentiated")

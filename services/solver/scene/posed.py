@@ -25,17 +25,21 @@ FACES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 
                   [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], np.uint32)
 
 
-def diffuse_mesh(name: str, vertices: np.ndarray, faces: np.ndarray, reflectance):
+def diffuse_mesh(name: str, vertices: np.ndarray, faces: np.ndarray, reflectance, smooth: bool = False):
     """A generated mesh, ``vertices`` ``(N, 3)`` and ``faces`` ``(F, 3)``, as a Mitsuba mesh with a
-    diffuse BSDF of ``reflectance`` (the built-in scenes' blocks and spheres)."""
+    diffuse BSDF of ``reflectance`` (the built-in scenes' blocks and spheres). ``smooth``: with
+    vertex normals (a smooth surface's mesh; Mitsuba recomputes them whenever the vertices move),
+    else flat-shaded, each triangle its own normal (a box's faces)."""
     mi = use_mitsuba()
     props = mi.Properties()
     props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": list(reflectance)}})
-    mesh = mi.Mesh(name, len(vertices), len(faces), props, False, False)
+    mesh = mi.Mesh(name, len(vertices), len(faces), props, smooth, False)
     params = mi.traverse(mesh)
     params["vertex_positions"] = mi.Float(np.asarray(vertices).ravel().astype(np.float32))
     params["faces"] = mi.UInt32(np.asarray(faces).ravel().astype(np.uint32))
     params.update()
+    if smooth:
+        mesh.recompute_vertex_normals()
     return mesh
 
 

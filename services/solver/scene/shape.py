@@ -117,6 +117,8 @@ class MeshReports:
 
     keys: list[str]
     shapes: dict[str, ShapeMesh]
+    poses: dict                     # shape id -> ShapePose (services.solver.scene.geometry)
+    params: mi.SceneParameters
 
     @property
     def sizes(self) -> list[int]:
@@ -135,6 +137,13 @@ class MeshReports:
     def shape_spans(self) -> list[tuple[int, int]]:
         """``(start, stop)`` in ``p`` of each shape parameter (a mesh's vertices)."""
         return [span for key, span in self.offsets().items() if self._mesh(key) is not None]
+
+    def flat_meshes(self) -> list[str]:
+        """The posed or reshaped meshes without vertex normals (flat-shaded: their shading jumps at
+        every edge between two triangles), by shape id."""
+        return sorted(shape for shape in set(self.poses) | set(self.shapes)
+                      if f"{shape}.vertex_normals" not in self.params.keys()   # noqa: SIM118 (not a dict)
+                      or dr.width(self.params[f"{shape}.vertex_normals"]) == 0)
 
     def shape_reports(self, values: np.ndarray, final: bool = False) -> dict[str, dict]:
         """Each optimized mesh at ``values`` (:meth:`.ShapeMesh.report`; ``final``: with its PLY,

@@ -77,9 +77,11 @@ def deform(vertices: np.ndarray, scale=(1.0, 1.0, 1.0), bump: float = 0.0, direc
 
 
 def sphere_mesh(name: str = "sphere", subdivisions: int = SUBDIVISIONS, reflectance=(0.6, 0.6, 0.6)):
-    """The icosphere as a Mitsuba mesh of radius :data:`RADIUS` about :data:`CENTRE`."""
+    """The icosphere as a Mitsuba mesh of radius :data:`RADIUS` about :data:`CENTRE`, smooth-shaded
+    (vertex normals): flat-shaded, every edge between two triangles would be a jump in its shading,
+    whose motion no projective integrator differentiates (``docs/guide/geometry.md``)."""
     points, faces = icosphere(subdivisions)
-    return diffuse_mesh(name, points * RADIUS + CENTRE, faces, reflectance)
+    return diffuse_mesh(name, points * RADIUS + CENTRE, faces, reflectance, smooth=True)
 
 
 def shape_sphere_builtin(resolution: int = 32) -> dict:
