@@ -102,6 +102,7 @@ def test_a_rounded_box_target_renders_in_the_spheres_place(mi):
     assert box is not None and box.vertices.shape == (866, 3) and box.faces.shape == (1728, 3)
     assert np.linalg.norm(box.vertices - mesh.centre, axis=1).max() == pytest.approx(mesh.radius)
     assert prepared.target_values is not None and np.isnan(prepared.target_values).all()
+    assert prepared.textures.error(prepared.init, prepared.target_values) is None   # a shape's error: its Chamfer
     params = parameters.params
     assert np.array_equal(np.asarray(params["sphere.faces"]).reshape(-1, 3), mesh.faces)
     assert np.abs(np.asarray(params[KEY]).reshape(-1, 3) - mesh.v0).max() < 1e-5
@@ -124,23 +125,29 @@ def test_a_rounded_box_target_renders_in_the_spheres_place(mi):
 
 
 def test_a_shape_job_reports_the_chamfer_to_a_target_of_another_topology(mi, tmp_path):
-    """One iteration of the rounded-box job: the record's Chamfer distance at iteration 0 is the
-    one between the sphere and the box (the mesh the step was taken at is the sphere), plan.json
-    says the same, and parameter_error is null (a shape's error is its Chamfer distance)."""
+    """One iteration of the rounded-box job, with the sphere's reflectance recovered too (0.6 in
+    the scene, 0.5 in the target): the record's Chamfer distance at iteration 0 is the one between
+    the sphere and the box (the mesh the step was taken at is the sphere), plan.json says the same,
+    and parameter_error is over the reflectance alone (0.1), the shape's NaN target values left
+    out. Failed (parameter_error null: NaN, written as null) with the old max over every scalar."""
     from services.jobs.local import run_local
     from services.solver.scene.shape import Surface, chamfer
     from services.solver.scene.shaped import RADIUS
 
-    summary = run_local(JobSpec.model_validate(_job(BOX)), tmp_path / "job")
+    reflectance = "sphere.bsdf.reflectance.value"
+    job = _job(BOX, parameters=[{"key": KEY}, {"key": reflectance}])
+    job["targets"]["synthetic"]["values"] = {reflectance: 0.5}
+    summary = run_local(JobSpec.model_validate(job), tmp_path / "job")
     assert summary["status"] == "succeeded", summary.get("error")
     record = json.loads(next((tmp_path / "job" / "iterations").glob("*/record.json")).read_text())
     points, faces = icosphere(3)
     box, box_faces = rounded_box()
     expected = chamfer(Surface(points * RADIUS, faces), Surface(box * RADIUS, box_faces))
     assert record["shapes"]["sphere"]["chamfer"] == pytest.approx(expected, rel=1e-3)
-    assert record["parameter_error"] is None and record["estimate_error"] is None
+    assert record["parameter_error"] == pytest.approx(0.1, abs=1e-6) and record["estimate_error"] is not None
     plan = json.loads((tmp_path / "job" / "plan.json").read_text())
-    assert plan["shapes"]["sphere"]["chamfer"] == pytest.approx(expected, rel=1e-3) and plan["target_values"] == []
+    assert plan["shapes"]["sphere"]["chamfer"] == pytest.approx(expected, rel=1e-3)
+    assert plan["target_values"] == pytest.approx([0.5] * 3)
 
 
 def test_a_file_target_beside_an_xml_scene(mi, tmp_path):
