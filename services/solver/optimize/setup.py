@@ -49,8 +49,9 @@ class Prepared:
     targets (NaN in the span of a shape whose target has another topology: it has no differential
     coordinates, its surface is the mesh's ``target``); ``target_depth`` the path depth the
     synthetic targets were rendered with; ``seconds`` what preparing took: ``load`` (scene and
-    checks) and ``targets`` (rendering synthetic targets). Nothing here is decided: :func:`services.solver.optimize.resolve.resolve` decides,
-    from the measurements of :class:`SceneMeasures`."""
+    checks) and ``targets`` (rendering synthetic targets). Nothing here is decided:
+    :func:`services.solver.optimize.resolve.resolve` decides, from the measurements of
+    :class:`SceneMeasures`."""
 
     spec: JobSpec
     problem: Problem
