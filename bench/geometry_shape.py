@@ -72,7 +72,7 @@ def run_loop(job: dict, seconds: float, guiding: str | None = None) -> dict:
 
     from schemas.job import JobSpec
     from services.solver.optimize.setup import prepare
-    from services.solver.scene.shape import chamfer
+    from services.solver.scene.shape import Surface, chamfer
 
     prepared, _ = prepare(JobSpec.model_validate(job))
     scene, params = prepared.problem.scene.scene, prepared.problem.scene.params
@@ -92,7 +92,7 @@ def run_loop(job: dict, seconds: float, guiding: str | None = None) -> dict:
             dr.backward(dr.mean(dr.abs(image[..., :3] - target)))
             opt.step()
         vertices = np.asarray(ls.from_differential(dr.detach(opt["u"])), np.float64).reshape(-1, 3)
-        curve.append([it, chamfer(vertices, mesh.target), time.perf_counter() - started])
+        curve.append([it, chamfer(Surface(vertices, mesh.faces), mesh.target), time.perf_counter() - started])
         it += 1
     return {"seconds": time.perf_counter() - started, "iterations": it, "chamfer": curve[-1][1],
             "best_chamfer": min(row[1] for row in curve), "curve": curve,

@@ -47,12 +47,12 @@ def gradient_command(job_path: str, method: str, spp: int, train_steps: int | No
     from services.solver.optimize.evaluate import evaluate_gradient
     from services.store.files import atomic_write_bytes, atomic_write_json, atomic_write_npy
     from services.store.images import gradient_png
-    from services.uploads.staging import stage_scene
+    from services.uploads.staging import stage_job
 
     spec = read_job(job_path)
     out = Path(out_dir)
     try:
-        scene_file = stage_scene(spec.scene, out / "scene", upload_limits(Limits()), Path(job_path).resolve().parent)
+        scene_file = stage_job(spec, out / "scene", upload_limits(Limits()), Path(job_path).resolve().parent)
     except ValueError as exc:
         raise click.ClickException(str(exc)) from None
     try:

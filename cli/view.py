@@ -47,7 +47,7 @@ def view_command(job_dir: str, out_dir: str, scene_path: str | None, **options) 
     from services.jobs.views import view_files
     from services.settings import Limits
     from services.solver.optimize.field_views import render_view, restore
-    from services.uploads.staging import stage_scene
+    from services.uploads.staging import stage_job
 
     folder = Path(job_dir)
     if options["origin"] is None and options["sensor"] is None:
@@ -64,7 +64,7 @@ def view_command(job_dir: str, out_dir: str, scene_path: str | None, **options) 
                 raise click.ClickException("the job's scene is a local path: give it with --scene")
             scene_file: Path | None = Path(scene_path)
         else:
-            scene_file = stage_scene(spec.scene, Path(tmp) / "scene", upload_limits(Limits()))
+            scene_file = stage_job(spec, Path(tmp) / "scene", upload_limits(Limits()))
         try:
             restored = restore(spec, checkpoint.read_bytes(), scene_file)
             view = render_view(restored, request)

@@ -3,7 +3,8 @@
 The service refuses host paths; ``ndrf submit`` and ``ndrf experiment`` send the XML and every
 file it names instead: ``<include filename=...>`` (read recursively) and every
 ``<string name="filename" value=...>`` (meshes, textures), by path relative to the main XML's
-folder. The server checks the upload as any other (no absolute paths, no ``..``, sizes).
+folder, and a shape job's target mesh files (``targets.synthetic.meshes.<shape id>.file``, relative
+to the same folder). The server checks the upload as any other (no absolute paths, no ``..``, sizes).
 """
 
 from __future__ import annotations
@@ -46,17 +47,35 @@ def pack_files(main: Path) -> tuple[str, dict[str, str]]:
         for name in _referenced(document):
             if "$" in name:
                 raise SceneError(f"{document.name}: {name!r} uses a $variable; write the file name out")
-            path = (folder / name).resolve()
-            if folder not in path.parents:
-                raise SceneError(f"{document.name}: {name!r} is outside the scene's folder {folder}")
-            if not path.is_file():
-                raise SceneError(f"{document.name}: {name!r} does not exist ({path})")
-            rel = path.relative_to(folder).as_posix()
-            if rel not in files:
-                files[rel] = base64.b64encode(path.read_bytes()).decode()
-                if path.suffix.lower() == ".xml":
-                    pending.append(path)
+            path = _add(files, folder, name, document.name)
+            if path.suffix.lower() == ".xml" and path not in seen:
+                pending.append(path)
     return main.read_text(encoding="utf-8"), files
+
+
+def _add(files: dict[str, str], folder: Path, name: str, where: str) -> Path:
+    """Add the file ``name`` (relative to ``folder``) to ``files`` by its relative path, base64."""
+    path = (folder / name).resolve()
+    if folder not in path.parents:
+        raise SceneError(f"{where}: {name!r} is outside the scene's folder {folder}")
+    if not path.is_file():
+        raise SceneError(f"{where}: {name!r} does not exist ({path})")
+    rel = path.relative_to(folder).as_posix()
+    if rel not in files:
+        files[rel] = base64.b64encode(path.read_bytes()).decode()
+    return path
+
+
+def _pack_targets(job: dict, folder: Path, files: dict[str, str]) -> None:
+    """Add the job's target mesh files (``targets.synthetic.meshes.<shape id>.file``, relative to
+    the scene's ``folder``) to ``files``, and name each in ``job`` by its path among them."""
+    targets = job.get("targets")
+    synthetic = targets.get("synthetic") if isinstance(targets, dict) else None
+    meshes = synthetic.get("meshes") if isinstance(synthetic, dict) else None
+    for shape, mesh in (meshes or {}).items() if isinstance(meshes, dict) else ():
+        if isinstance(mesh, dict) and isinstance(mesh.get("file"), str):
+            path = _add(files, folder, mesh["file"], f"targets.synthetic.meshes.{shape}.file")
+            mesh["file"] = path.relative_to(folder).as_posix()
 
 
 def pack_scene(job: dict, base_dir: str | Path) -> dict:
@@ -73,5 +92,6 @@ def pack_scene(job: dict, base_dir: str | Path) -> dict:
     main = main if main.is_absolute() else Path(base_dir) / main
     xml, files = pack_files(main)
     packed = copy.deepcopy(job)
+    _pack_targets(packed, main.parent.resolve(), files)
     packed["scene"] = {"xml": xml, "files": files}
     return packed

@@ -82,9 +82,20 @@ class ParameterSpec(_Strict):
 # ---------------------------------------------------------------------------------- targets
 
 class TargetMesh(_Strict):
-    """A shape job's synthetic target: the shape's own mesh deformed about the centre of its
-    bounding box (same vertices and triangles, so the Chamfer distance compares like with like)."""
+    """A shape job's synthetic target shape, of any topology: the shape's own mesh (default), a
+    mesh ``file`` or a ``builtin`` one, deformed (``scale``, ``bump``) about the centre of its own
+    bounding box. The records' Chamfer distance compares surfaces, whatever their vertices."""
 
+    file: str | None = Field(None, min_length=1, max_length=1024,
+                             description="A PLY or OBJ file that is the target shape, its vertices in the scene's "
+                                         "world space (as the shape's vertex_positions are): a path among an "
+                                         "uploaded XML scene's files, or relative to a local XML scene's folder "
+                                         "(ndrf run). Not with a built-in scene, nor with builtin. Default: the "
+                                         "shape's own mesh.")
+    builtin: Literal["rounded-box"] | None = Field(
+        None, description="A target mesh the project generates: 'rounded-box', a rounded cube on its own grid (866 "
+                          "vertices) centred on the centre of the shape's bounding box, its corners at the shape's "
+                          "radius. Not with file. Default: the shape's own mesh.")
     scale: tuple[float, float, float] = Field((1.0, 1.0, 1.0), description="Scaling per axis (x, y, z), applied "
                                                                           "after the bump; each in [0.1, 10].")
     bump: float = Field(0.0, ge=-1.0, le=1.0, description="Height of a smooth radial bump, in radii of the shape "
@@ -102,6 +113,13 @@ class TargetMesh(_Strict):
             raise ValueError(f"scale must lie in [0.1, 10] per axis, got {list(scale)}")
         return scale
 
+    @model_validator(mode="after")
+    def _one_source(self):
+        if self.file is not None and self.builtin is not None:
+            raise ValueError(f"a target mesh is a file or a builtin mesh, not both (got file {self.file!r} and "
+                             f"builtin {self.builtin!r})")
+        return self
+
 
 class SyntheticTarget(_Strict):
     """Render the target from the same scene with known parameter values."""
@@ -112,8 +130,9 @@ class SyntheticTarget(_Strict):
                     "parameter (<shape id>.vertex_positions) takes its target from meshes instead.")
     meshes: dict[str, TargetMesh] = Field(
         default_factory=dict, max_length=16,
-        description="Target shapes of shape parameters, by shape id: the target is rendered with the shape's mesh "
-                    "deformed (TargetMesh), and the records report the Chamfer distance to it.")
+        description="Target shapes of shape parameters, by shape id (TargetMesh): the shape's own mesh, a mesh file "
+                    "or a builtin mesh, deformed; the target is rendered with it in the shape's place, and the "
+                    "records report the Chamfer distance to it.")
     spp: int = Field(256, ge=1, le=65536, description="Samples per pixel of the target rendering.")
     max_depth: int | None = Field(
         None, ge=1, le=1024, description="Path depth of the target rendering. Default: unbounded, paths ended "
@@ -425,7 +444,8 @@ class JobSpec(_Strict):
         """Hash of everything that changes the computation (not the name): a checkpoint is only
         loaded into the job it belongs to, and an Idempotency-Key only returns the same job. A job
         without ``warm_start``, with the default ``stop``, ``textures.resolution`` and ``geometry``
-        (or its remeshing schedule) and no target meshes, hashes as before those fields existed; ``hessian: auto`` hashes as
+        (or its remeshing schedule) and no target meshes, hashes as before those fields existed, and so
+        does a target mesh without ``file`` or ``builtin``; ``hessian: auto`` hashes as
         ``successive``, the default it replaced (what it resolves to for every job but a blurred pose)."""
         if self.hessian == "auto":
             return self.model_copy(update={"hessian": "successive"}).fingerprint()
@@ -438,8 +458,12 @@ class JobSpec(_Strict):
             exclude["geometry"] = True
         elif self.geometry.model_dump(include=REMESH_FIELDS) == GeometrySettings().model_dump(include=REMESH_FIELDS):
             exclude["geometry"] = REMESH_FIELDS
-        if isinstance(self.targets, SyntheticTargets) and not self.targets.synthetic.meshes:
-            exclude["targets"] = {"synthetic": {"meshes"}}
+        if isinstance(self.targets, SyntheticTargets):
+            meshes = self.targets.synthetic.meshes
+            later = {shape: {name for name in ("file", "builtin") if getattr(mesh, name) is None}
+                     for shape, mesh in meshes.items()}
+            exclude["targets"] = {"synthetic": {"meshes": {s: names for s, names in later.items() if names}}
+                                  if meshes else {"meshes"}}
         return hashlib.sha256(self.model_dump_json(exclude=exclude).encode()).hexdigest()[:16]
 
     @field_validator("adam_betas")

@@ -97,8 +97,11 @@ class IterationRecord(BaseModel):
                                                                "the iteration's steps.")
     residual_differential: float | None = Field(None, description="Mean residual norm of the differential field "
                                                                    "dL_theta.")
-    parameter_error: float | None = Field(None, description="max |p - target| of the parameters the step was taken at "
-                                                            "(synthetic targets only).")
+    parameter_error: float | None = Field(None, description="max |p - target| of the parameters the step was taken at, "
+                                                            "over the scalars that are not a shape's (the listed "
+                                                            "scalars and the textures' texels; synthetic targets "
+                                                            "only; null when every parameter is a shape's: its "
+                                                            "error is its Chamfer distance, in shapes).")
     estimate: list[float] | None = Field(None, description="The answer after this iteration: the best estimate of "
                                                            "every listed scalar from the iterations of its window "
                                                            "(services/solver/optimize/answer.py); what the run returns "
@@ -106,7 +109,8 @@ class IterationRecord(BaseModel):
     standard_error: list[float] | None = Field(None, description="The standard error of each scalar of estimate "
                                                                  "(null while the window is too short to give one).")
     estimate_window: list[int] | None = Field(None, description="[first, last] iteration the estimate averages.")
-    estimate_error: float | None = Field(None, description="max |estimate - target| (synthetic targets only).")
+    estimate_error: float | None = Field(None, description="max |estimate - target|, over the scalars parameter_error "
+                                                           "compares (synthetic targets only).")
     images: bool = Field(False, description="Whether renders and gradient images were written this iteration.")
     textures: dict[str, dict[str, Any]] | None = Field(
         None, description="Per texture parameter, by key (texture jobs only; their texels are not in parameters, "
@@ -116,8 +120,9 @@ class IterationRecord(BaseModel):
     shapes: dict[str, dict[str, Any]] | None = Field(
         None, description="Per optimized mesh, by shape id (shape jobs only; its vertices are not in parameters, "
                           "updated_parameters or dz_dp): vertices, faces and, with a synthetic target mesh, chamfer, "
-                          "the symmetric Chamfer distance (scene units) of the vertices the step was taken at to the "
-                          "target's.")
+                          "the symmetric Chamfer distance (scene units) of the surface the step was taken at to the "
+                          "target surface, of any topology: the mean distance of points uniform by area on each to "
+                          "the other surface, both ways, averaged.")
     preview_scales: list[float] | None = Field(None, description="Value of full red in each gradient preview.")
 
 

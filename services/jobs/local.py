@@ -23,7 +23,7 @@ from services.queue.base import EventBus
 from services.settings import Limits
 from services.store.job import JobFiles
 from services.store.local import FolderStore
-from services.uploads.staging import stage_scene
+from services.uploads.staging import stage_job
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +59,7 @@ def run_local(spec: JobSpec, out: Path, *, base_dir: Path | None = None, resume:
     attempt = _claim(states, files, spec, resume)
     writer = JobWriter(states, job_id, attempt=attempt, stop=should_stop)
     try:
-        scene_file = stage_scene(spec.scene, out / "scene", upload_limits(Limits()), base_dir)
+        scene_file = stage_job(spec, out / "scene", upload_limits(Limits()), base_dir)
     except InvalidJob as exc:
         writer.finish({"status": "failed", "iterations": 0, "seconds": 0.0, "error": str(exc), "field": exc.field})
         return files.read(JobFiles.SUMMARY)

@@ -23,7 +23,7 @@ from services.jobs.isolation import ChildFailed, ChildLimits, exchange
 from services.limits import check_limits, check_scene_report, check_target_headers
 from services.settings import Limits
 from services.uploads.scene import UploadLimits
-from services.uploads.staging import stage_scene
+from services.uploads.staging import stage_job, stage_scene
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +82,7 @@ def preflight(spec: JobSpec, limits: Limits) -> dict:
     check_limits(spec, limits)
     check_target_headers(spec, limits)
     with tempfile.TemporaryDirectory(prefix="ndrf-preflight-", dir=checks_folder()) as tmp:
-        scene_file = stage_scene(spec.scene, Path(tmp) / "scene", upload_limits(limits))
+        scene_file = stage_job(spec, Path(tmp) / "scene", upload_limits(limits))
         start = {"spec": spec.model_dump(mode="json"), "scene_file": str(scene_file) if scene_file else None,
                  "max_scalars": limits.parameters, "max_texels": limits.texels}
         report = _in_child("check", start, spec.scene, limits, Path(tmp))["report"]

@@ -49,7 +49,7 @@ from services.limits import check_limits, check_target_headers
 from services.settings import Limits
 from services.store.base import StoreFull
 from services.store.job import JobFiles
-from services.uploads.staging import stage_scene
+from services.uploads.staging import stage_job
 
 log = logging.getLogger(__name__)
 
@@ -136,7 +136,7 @@ class AttemptRunner:
         check_limits(spec, self.limits)
         check_target_headers(spec, self.limits)
         folder.mkdir(parents=True, exist_ok=True)
-        scene_file = stage_scene(spec.scene, folder / "scene", upload_limits(self.limits))
+        scene_file = stage_job(spec, folder / "scene", upload_limits(self.limits))
         resume = files.resume_checkpoint()
         resume_file = warm_file = None
         if resume is not None:

@@ -45,7 +45,7 @@ from services.jobs.frames import FrameError, read_frame, start_frame, write_fram
 from services.jobs.isolation import Child, ChildFailed, ChildLimits
 from services.jobs.preflight import checks_folder, upload_limits
 from services.settings import Limits
-from services.uploads.staging import stage_scene
+from services.uploads.staging import stage_job
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +64,7 @@ class ViewSession:
         self.folder = Path(tempfile.mkdtemp(prefix="ndrf-views-", dir=checks_folder()))
         self.frames: queue.Queue = queue.Queue()
         try:
-            scene_file = stage_scene(spec.scene, self.folder / "scene", upload_limits(limits))
+            scene_file = stage_job(spec, self.folder / "scene", upload_limits(limits))
             (self.folder / "latest.pt").write_bytes(checkpoint)
             lifetime = ChildLimits(memory_bytes=limits.child_memory_bytes, cpu_seconds=int(limits.view_seconds) * 8,
                                    wall_seconds=limits.view_seconds)

@@ -34,7 +34,7 @@ from services.jobs.view_files import VIEW_FILE_PATTERN, OpenView, open_view, vie
 from services.jobs.view_sessions import ViewSessions
 from services.settings import Limits
 from services.store.job import JobFiles
-from services.uploads.staging import stage_scene
+from services.uploads.staging import stage_job
 
 __all__ = ["VIEW_FILE_PATTERN", "VIEW_ID_PATTERN", "NoCheckpoint", "OverBudget", "create_view", "view_files"]
 
@@ -100,7 +100,7 @@ def render_in_child(spec: JobSpec, checkpoint: bytes, request: ViewRequest, limi
     be rendered."""
     with tempfile.TemporaryDirectory(prefix="ndrf-view-", dir=checks_folder()) as tmp:
         folder = Path(tmp)
-        scene_file = stage_scene(spec.scene, folder / "scene", upload_limits(limits))
+        scene_file = stage_job(spec, folder / "scene", upload_limits(limits))
         (folder / "latest.pt").write_bytes(checkpoint)
         start = {"spec": spec.model_dump(mode="json"), "scene_file": str(scene_file) if scene_file else None,
                  "checkpoint_file": str(folder / "latest.pt"), "request": request.model_dump(mode="json"),

@@ -2,16 +2,21 @@
 and its files into an emptied folder, where a sandboxed child loads it.
 
 The folder is emptied first so that nothing left there can shadow an upload, and created even
-when the scene has no files (a self-contained XML is the simplest upload there is).
+when the scene has no files (a self-contained XML is the simplest upload there is). A job's scene
+is staged with :func:`stage_job`, which also checks the job's target mesh files
+(:mod:`services.uploads.target_meshes`): they are staged with the other files, and read too.
 """
 
 from __future__ import annotations
 
 import shutil
+from collections.abc import Mapping
 from pathlib import Path
 
-from schemas.job import BuiltinScene, PathScene, SceneSpec, XmlScene
+from schemas.errors import InvalidJob
+from schemas.job import BuiltinScene, JobSpec, PathScene, SceneSpec, XmlScene
 from services.uploads.scene import MAIN_XML_NAME, UploadLimits, check_scene_upload, resolve_scene_defaults
+from services.uploads.target_meshes import check_target_files, target_files
 
 
 def write_scene_files(folder: Path, xml: str, files: dict[str, bytes]) -> Path:
@@ -32,16 +37,31 @@ def write_scene_files(folder: Path, xml: str, files: dict[str, bytes]) -> Path:
     return main
 
 
-def stage_scene(scene: SceneSpec, folder: Path, limits: UploadLimits, base_dir: Path | None = None) -> Path | None:
+def stage_job(spec: JobSpec, folder: Path, limits: UploadLimits, base_dir: Path | None = None) -> Path | None:
+    """:func:`stage_scene` of a job's scene, its target mesh files checked with it."""
+    return stage_scene(spec.scene, folder, limits, base_dir, target_files(spec))
+
+
+def stage_scene(scene: SceneSpec, folder: Path, limits: UploadLimits, base_dir: Path | None = None,
+                targets: Mapping[str, str] | None = None) -> Path | None:
     """The file a job's scene loads from: ``None`` for a built-in, the staged ``scene.xml`` of an
     upload (checked against ``limits``; raises :class:`schemas.errors.InvalidJob`), or the local
     file of a :class:`PathScene` resolved against ``base_dir`` (trusted callers only: the service
-    refuses host paths before this)."""
+    refuses host paths before this). ``targets``: the job's target mesh files, ``{field: path}``
+    (:func:`~services.uploads.target_meshes.check_target_files`), whose vertices and faces count
+    against the scene's caps."""
+    cost = check_target_files(targets or {}, scene, limits)
     if isinstance(scene, BuiltinScene):
         return None
     if isinstance(scene, XmlScene):
         xml = resolve_scene_defaults(scene.xml, limits)   # checked and staged as resolved
-        files = check_scene_upload(xml, scene.files, limits)
+        try:
+            files = check_scene_upload(xml, scene.files, cost.within(limits))
+        except InvalidJob as exc:
+            if cost.vertices and any(cap in exc.message for cap in ("max_scene_vertices", "max_scene_faces")):
+                raise InvalidJob(exc.field, f"{exc.message}, once the target meshes' {cost.vertices} vertices and "
+                                            f"{cost.faces} faces are counted") from None
+            raise
         return write_scene_files(folder, xml, files)
     if isinstance(scene, PathScene):
         path = Path(scene.path)

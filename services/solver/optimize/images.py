@@ -86,9 +86,9 @@ def silhouette_views(prepared, current: np.ndarray, cache: dict[int, np.ndarray]
     params, scene = problem.parameters, problem.scene
     shapes = sorted(set(params.poses) | set(params.shapes))   # posed or reshaped meshes
     if not cache and prepared.target_values is not None:
-        params.assign(prepared.target_values)
         try:
-            cache.update({s: silhouette(scene.scene, shapes, scene.sensor(s)) for s in prepared.targets})
+            with params.showing_targets(prepared.target_values):   # a target mesh of another topology swapped in
+                cache.update({s: silhouette(scene.scene, shapes, scene.sensor(s)) for s in prepared.targets})
         finally:
             params.assign(current)
     return {s: overlay(prepared.targets[s], silhouette(scene.scene, shapes, scene.sensor(s)), cache.get(s))

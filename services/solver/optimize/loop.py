@@ -156,8 +156,6 @@ class InverseRenderingRun:
             built = build(prepared, recipe)
             state = self._initial_state(prepared, recipe, built)
             self._report_plan(prepared, recipe, built, state)
-            if prepared.problem.parameters.has_geometry:   # the target's silhouettes, before a remesh changes the layout
-                silhouette_views(prepared, state.parameters, self._target_silhouettes)
             self.reporter.targets(prepared.targets)
             if prepared.textures.targets(prepared.target_values):   # final/<key>.target, for comparison
                 self.reporter.textures(None, prepared.textures.targets(prepared.target_values))
@@ -352,11 +350,11 @@ class InverseRenderingRun:
             views=list(estimate.candidates),
             optimizer=built.optimizer.describe() or None,
             seconds={phase: clock.seconds.get(phase, 0.0) for phase in ("training", "gradient", "step", "images")},
-            parameter_error=(float(np.max(np.abs(state.parameters - target))) if target is not None else None),
+            parameter_error=listed.error(state.parameters, target),
             estimate=listed.scalars(answer.values),
             standard_error=None if answer.standard_error is None else listed.scalars(answer.standard_error),
             estimate_window=[answer.start, answer.end],
-            estimate_error=float(np.max(np.abs(answer.values - target))) if target is not None else None,
+            estimate_error=listed.error(answer.values, target),
             shapes=prepared.problem.parameters.shape_reports(state.parameters) or None,
             **training)
 

@@ -32,7 +32,7 @@ from services.solver.scene.facts import SceneFacts, direct_reach, probe_scene
 from services.solver.scene.footprint import texel_footprint
 from services.solver.scene.load import LoadedScene, load_scene
 from services.solver.scene.params import ParameterSet
-from services.solver.scene.shaped import deform
+from services.solver.scene.target_shape import own_topology, target_surface
 from services.solver.scene.targets import ImageDecodeError, decode_image
 from services.solver.seeds import derive_seed
 
@@ -46,10 +46,12 @@ MIN_ROUGHNESS = 1e-3
 class Prepared:
     """A job ready to be resolved and run: ``init``, ``lower``, ``upper`` are ``(P,)``; ``targets``
     maps a sensor index to its ``(H, W, 3)`` target; ``target_values`` is ``(P,)`` for synthetic
-    targets; ``target_depth`` the path depth the synthetic targets were rendered with; ``seconds``
-    what preparing took: ``load`` (scene and checks) and ``targets`` (rendering synthetic
-    targets). Nothing here is decided: :func:`services.solver.optimize.resolve.resolve` decides,
-    from the measurements of :class:`SceneMeasures`."""
+    targets (NaN in the span of a shape whose target has another topology: it has no differential
+    coordinates, its surface is the mesh's ``target``); ``target_depth`` the path depth the
+    synthetic targets were rendered with; ``seconds`` what preparing took: ``load`` (scene and
+    checks) and ``targets`` (rendering synthetic targets). Nothing here is decided:
+    :func:`services.solver.optimize.resolve.resolve` decides, from the measurements of
+    :class:`SceneMeasures`."""
 
     spec: JobSpec
     problem: Problem
@@ -263,11 +265,12 @@ def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None
         own, offset, values = scene_values, 0, []
         for key, info in zip(keys, parameters.infos):
             mesh = parameters.shapes.get(key[:-len(".vertex_positions")]) if info.owner == "geometry" else None
-            if mesh is not None:   # a shape's target: its mesh deformed, as differential coordinates
-                deformation = synthetic.meshes.get(mesh.shape)
-                mesh.target = mesh.v0 if deformation is None else deform(
-                    mesh.v0, deformation.scale, deformation.bump, deformation.bump_direction, deformation.bump_width)
-                values.append(mesh.to_differential(mesh.target))
+            if mesh is not None:   # a shape's target surface; of its own topology, as differential coordinates
+                target = synthetic.meshes.get(mesh.shape)
+                mesh.target = target_surface(mesh, target, scene_file.parent if scene_file is not None else None,
+                                             f"targets.synthetic.meshes.{mesh.shape}")
+                values.append(mesh.to_differential(mesh.target.vertices) if own_topology(target)
+                              else np.full(info.size, np.nan))
                 offset += info.size
                 continue
             value = synthetic.values[key]
@@ -298,10 +301,10 @@ def prepare(spec: JobSpec, *, scene_file: Path | None = None,
         synthetic = spec.targets.synthetic
         target_depth = PathDepth(synthetic.max_depth, synthetic.rr_depth)
         on_phase(f"rendering {c.scene.sensor_count} synthetic target(s) at {synthetic.spp} spp")
-        c.parameters.assign(c.target_values)
-        for sensor in range(c.scene.sensor_count):
-            targets[sensor] = render(problem, spp=synthetic.spp, sensor=sensor,
-                                     seed=derive_seed(spec.seed, "target", sensor), depth=target_depth)
+        with c.parameters.showing_targets(c.target_values):   # a target mesh of another topology swapped in
+            for sensor in range(c.scene.sensor_count):
+                targets[sensor] = render(problem, spp=synthetic.spp, sensor=sensor,
+                                         seed=derive_seed(spec.seed, "target", sensor), depth=target_depth)
     c.parameters.assign(c.init)
     log.info("prepared job: %d scalars, %d target(s)", c.parameters.n, len(targets))
     seconds = {"load": loaded - started, "targets": time.perf_counter() - loaded}

@@ -9,7 +9,9 @@ included. :class:`TextureReport` splits it for the reports:
   (``scalars``, ``init``, ``lower``, ``upper``, ``target_values``), in each iteration record
   (``parameters``, ``updated_parameters``, ``dz_dp``) and in the summary, as before;
 * a shape parameter (a mesh's vertices, ``services.solver.scene.shape``) is not listed either:
-  the records report its Chamfer distance to a synthetic target mesh;
+  the records report its Chamfer distance to a synthetic target mesh, and its differential
+  coordinates are left out of the records' ``parameter_error`` and ``estimate_error``
+  (:meth:`TextureReport.error`: a target of another topology has none);
 * each texture is reported by a summary per iteration (:meth:`TextureReport.summaries`: mean per
   channel, min, max, gradient RMS and, against a synthetic target, RMSE and PSNR) and by its value
   ``(H, W, C)`` float32 (:meth:`TextureReport.images`), written to files by the host; its
@@ -62,6 +64,10 @@ class TextureReport:
                 self.labels += [f"{info.key}[{c}]" for c in range(info.size)]
             offset += info.size
         self.listed = mask
+        #: the scalars that are not a shape's: the listed ones and the textures' texels
+        self.compared = mask.copy()
+        for texture in self.textures:
+            self.compared[texture.offset:texture.offset + texture.size] = True
         self.n = parameters.n
 
     def __bool__(self) -> bool:
@@ -75,6 +81,14 @@ class TextureReport:
     def scalars(self, flat: np.ndarray) -> list[float]:
         """The listed scalars of ``flat`` ``(P,)`` (every scalar when the job has no texture)."""
         return np.asarray(flat, np.float64)[self.listed].tolist()
+
+    def error(self, flat: np.ndarray, target: np.ndarray | None) -> float | None:
+        """``max |flat - target|`` over the scalars that are not a shape's (:attr:`compared`; both
+        ``(P,)``): a record's ``parameter_error`` or ``estimate_error``. None without a synthetic
+        target, or when every scalar is a shape's (its error is its Chamfer distance)."""
+        if target is None or not self.compared.any():
+            return None
+        return float(np.max(np.abs(np.asarray(flat, np.float64)[self.compared] - target[self.compared])))
 
     def images(self, flat: np.ndarray) -> dict[str, np.ndarray]:
         """Every texture's value ``(H, W, C)`` float32, by key."""

@@ -16,13 +16,20 @@ the vertices written into the scene are ``from_differential(u)`` (``3 N``, gathe
 
 Only Mitsuba's projective integrators differentiate the silhouettes that the vertices move
 (``services.solver.estimators.methods.projective``). Beside the parameter itself this module
-gives what a shape job reports: the Chamfer distance to a target mesh (:func:`chamfer`) and the
-mesh as a PLY file (:func:`ply_bytes`).
+gives what a shape job reports: the Chamfer distance to a target surface of any topology
+(:func:`chamfer`) and the mesh as a PLY file (:func:`ply_bytes`).
+
+A synthetic target (:class:`Surface`) of the mesh's own topology is rendered by assigning its
+differential coordinates; one of another topology has none (its span of the target values is
+NaN) and is rendered by swapping the mesh's topology to it for a while (:meth:`ShapeMesh.showing`,
+:meth:`MeshReports.showing_targets`).
 """
 
 from __future__ import annotations
 
 import base64
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -32,8 +39,34 @@ import numpy as np
 
 #: The key suffix of a shape parameter.
 VERTICES = "vertex_positions"
-#: Rows of the first mesh per block of :func:`chamfer`'s distance matrix (memory: rows x M floats).
-CHAMFER_ROWS = 256
+#: Points sampled on each surface by :func:`chamfer` (uniform by area).
+CHAMFER_POINTS = 100_000
+#: The seed of :func:`chamfer`'s points: the same surfaces give the same distance.
+CHAMFER_SEED = 0
+#: The mesh attributes a topology swap (:meth:`ShapeMesh.showing`) writes and restores.
+TOPOLOGY = ("faces", VERTICES, "vertex_normals", "vertex_texcoords")
+
+
+@dataclass(frozen=True, eq=False)
+class Surface:
+    """A triangle mesh: ``vertices`` ``(M, 3)`` float64 (scene units) and ``faces`` ``(G, 3)``
+    int64 indices into them."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+
+    @classmethod
+    def of(cls, vertices, faces) -> Surface:
+        """The surface of array-likes, checked: ``(M, 3)`` finite vertices, ``(G, 3)`` faces indexing them."""
+        v = np.asarray(vertices, np.float64).reshape(-1, 3)
+        f = np.asarray(faces, np.int64).reshape(-1, 3)
+        if not len(v) or not len(f):
+            raise ValueError(f"a surface needs vertices and triangles, got {len(v)} and {len(f)}")
+        if not np.all(np.isfinite(v)):
+            raise ValueError("a surface's vertices must be finite")
+        if f.min() < 0 or f.max() >= len(v):
+            raise ValueError(f"a surface's faces index {len(v)} vertices, got indices {f.min()}..{f.max()}")
+        return cls(v, f)
 
 
 def shape_of(key: str) -> str | None:
@@ -47,7 +80,7 @@ class ShapeMesh:
     """One mesh whose vertices are optimized: its vertices as loaded ``v0`` ``(N, 3)``, its faces
     ``(F, 3)``, the ``LargeSteps`` solver of λ, the current differential coordinates ``value``
     (a Dr.Jit ``Float`` of ``3 N'``, which may be a gradient-tracking leaf) and, with a synthetic
-    target mesh, its vertices ``target`` ``(M, 3)``."""
+    target shape, its :class:`Surface` ``target`` (any topology)."""
 
     shape: str
     v0: np.ndarray
@@ -55,7 +88,7 @@ class ShapeMesh:
     lambda_: float
     steps: Any                 # mi.ad.LargeSteps (untyped)
     value: Any = None
-    target: np.ndarray | None = field(default=None, repr=False)
+    target: Surface | None = field(default=None, repr=False)
 
     @classmethod
     def of(cls, params: mi.SceneParameters, shape: str, lambda_: float) -> ShapeMesh:
@@ -97,12 +130,29 @@ class ShapeMesh:
         gradient-tracking ``value`` gets ``dz/du``); the caller calls ``params.update()``."""
         params[f"{self.shape}.{VERTICES}"] = self.steps.from_differential(self.value)
 
+    @contextmanager
+    def showing(self, params: mi.SceneParameters, surface: Surface) -> Iterator[None]:
+        """The scene's mesh swapped to ``surface`` for the block (:func:`write_topology`: a
+        smooth-shaded mesh's target is smooth-shaded too), then restored to the arrays it held
+        before (faces, vertices, normals, texture coordinates). Nothing may update ``params``
+        through the :class:`ParameterSet` inside: its update writes ``from_differential(value)``,
+        of the mesh's own vertex count."""
+        keys = [f"{self.shape}.{name}" for name in TOPOLOGY]
+        held = {key: type(params[key])(params[key]) for key in keys}      # copies of what the mesh holds
+        write_topology(params, self.shape, surface.vertices, surface.faces)
+        try:
+            yield
+        finally:
+            for key, value in held.items():
+                params[key] = value
+            params.update()
+
     def report(self, u: np.ndarray) -> dict:
         """What a record says of the mesh at ``u``: vertices, faces and, against a target, the
-        Chamfer distance (scene units)."""
+        Chamfer distance (:func:`chamfer`, scene units)."""
         out: dict = {"vertices": len(self.v0), "faces": len(self.faces)}
         if self.target is not None:
-            out["chamfer"] = chamfer(self.vertices(u), self.target)
+            out["chamfer"] = chamfer(Surface(self.vertices(u), self.faces), self.target)
         return out
 
     def final(self, u: np.ndarray) -> dict:
@@ -122,6 +172,9 @@ class MeshReports:
 
     @property
     def sizes(self) -> list[int]:
+        raise NotImplementedError
+
+    def assign(self, values: np.ndarray) -> None:
         raise NotImplementedError
 
     def _mesh(self, key: str) -> ShapeMesh | None:
@@ -152,6 +205,29 @@ class MeshReports:
         return {shape: (mesh.final if final else mesh.report)(values[slice(*spans[f"{shape}.vertex_positions"])])
                 for shape, mesh in self.shapes.items()}
 
+    @contextmanager
+    def showing_targets(self, target: np.ndarray) -> Iterator[None]:
+        """The scene at the synthetic target ``target`` ``(P,)`` for the block: every parameter
+        assigned its target value, then each mesh whose target has another topology (its span of
+        ``target`` is NaN, there are no differential coordinates of it) swapped to its target
+        surface (:meth:`ShapeMesh.showing`; such a mesh keeps its current ``value`` meanwhile).
+        On exit the meshes are restored; the parameters stay at the target's values until the
+        caller assigns others (nothing may assign inside the block)."""
+        values = np.array(target, np.float64).reshape(-1)
+        spans = self.offsets()
+        swapped: list[tuple[ShapeMesh, Surface]] = []
+        for shape, mesh in self.shapes.items():
+            span = slice(*spans[f"{shape}.{VERTICES}"])
+            if np.isnan(values[span]).any():
+                if mesh.target is None:
+                    raise ValueError(f"{shape}: the target values hold no vertices and there is no target surface")
+                values[span] = np.asarray(mesh.value, np.float64)
+                swapped.append((mesh, mesh.target))
+        self.assign(values)
+        with ExitStack() as stack:
+            for mesh, surface in swapped:
+                stack.enter_context(mesh.showing(self.params, surface))
+            yield
 
 def write_topology(params: mi.SceneParameters, shape: str, vertices: np.ndarray, faces: np.ndarray) -> None:
     """Give the scene's mesh ``shape`` new triangles: ``vertices`` ``(N', 3)`` (world space) and
@@ -173,24 +249,32 @@ def write_topology(params: mi.SceneParameters, shape: str, vertices: np.ndarray,
         params.properties[f"{shape}.{VERTICES}"][2].recompute_vertex_normals()   # the mesh (value, type, node, flags)
 
 
-def chamfer(a: np.ndarray, b: np.ndarray) -> float:
-    """The symmetric Chamfer distance of two point sets ``a`` ``(N, 3)`` and ``b`` ``(M, 3)``: the
-    mean over ``a`` of the distance to the nearest point of ``b`` and the same from ``b``,
-    averaged (scene units; 0 for equal sets). Exact, in blocks of :data:`CHAMFER_ROWS` rows of
-    the ``N x M`` distance matrix (about a second for 10,000 vertices each)."""
-    a, b = np.asarray(a, np.float64).reshape(-1, 3), np.asarray(b, np.float64).reshape(-1, 3)
-    if not len(a) or not len(b):
-        raise ValueError("the Chamfer distance needs two non-empty point sets")
-    b2 = np.einsum("ij,ij->i", b, b)
-    to_b = np.empty(len(a))
-    to_a = np.full(len(b), np.inf)
-    for start in range(0, len(a), CHAMFER_ROWS):
-        rows = a[start:start + CHAMFER_ROWS]
-        d2 = np.einsum("ij,ij->i", rows, rows)[:, None] + b2[None, :] - 2.0 * rows @ b.T
-        np.maximum(d2, 0.0, out=d2)
-        to_b[start:start + len(rows)] = d2.min(axis=1)
-        np.minimum(to_a, d2.min(axis=0), out=to_a)
-    return float(0.5 * (np.sqrt(to_b).mean() + np.sqrt(to_a).mean()))
+def chamfer(a: Surface, b: Surface, points: int = CHAMFER_POINTS, seed: int = CHAMFER_SEED) -> float:
+    """The symmetric Chamfer distance of surfaces ``a`` and ``b`` (scene units): the mean distance
+    to ``b`` of points uniform by area on ``a``, plus the same from ``b`` to ``a``, halved. 0 for
+    the same surface whatever its tessellation; ``d`` for two concentric spheres ``d`` apart.
+
+    Estimated with ``points`` points per surface (``gpytoolbox.random_points_on_mesh``, a fresh
+    generator seeded ``seed`` on each side, so the same surfaces give the same number and
+    ``chamfer(a, b) == chamfer(b, a)``); each distance is exact, point to nearest triangle
+    (``gpytoolbox.squared_distance``, an AABB tree). The Monte Carlo error of the default
+    100,000 points, measured as the standard deviation over 20 seeds relative to the mean: 0.24%
+    for the icosphere of ``shape-sphere`` against its stretched and bumped target of
+    ``tests/unit/test_shape.py`` (Chamfer 0.035), 0.10% against the rounded box (0.065), 0.0001%
+    against a sphere 1% larger (0.004: every distance is nearly the same), 0.42% for the
+    35,947-vertex Stanford bunny against itself stretched by 10% along x (0.0018; 10 seeds).
+    Seconds on the 2-core CPU: 0.24 for two 642-vertex meshes, 0.7 for two of 35,947 vertices."""
+    import gpytoolbox
+
+    def one_way(source: Surface, to: Surface) -> float:
+        samples = gpytoolbox.random_points_on_mesh(source.vertices, source.faces, points,
+                                                   rng=np.random.default_rng(seed))
+        squared = gpytoolbox.squared_distance(samples, to.vertices, to.faces, use_cpp=True)[0]
+        return float(np.sqrt(np.maximum(squared, 0.0)).mean())
+
+    if points < 1:
+        raise ValueError(f"the Chamfer distance needs at least one point per surface, got {points}")
+    return 0.5 * (one_way(a, b) + one_way(b, a))
 
 
 def ply_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:

@@ -7,9 +7,10 @@ The sphere (``sphere``) is a mesh the project generates (no file): an icosphere 
 recovers (:mod:`.shape`). Nothing in the scene reflects light onto it (it is convex, and there is
 no floor), so direct illumination is its whole image and ``auto`` takes ``direct_projective``.
 
-A synthetic target shape is the shape's own mesh deformed (:func:`deform`: a smooth radial bump,
-then a scaling per axis, about the centre of its bounding box), so the target has the mesh's
-topology and the Chamfer distance compares like with like.
+A synthetic target shape is a mesh deformed (:func:`deform`: a smooth radial bump, then a scaling
+per axis, about the centre of its bounding box): the shape's own mesh, a mesh of a file, or one the
+project generates, :func:`rounded_box` (a rounded cube on its own grid: another vertex count and
+connectivity than the icosphere's).
 """
 
 from __future__ import annotations
@@ -25,6 +26,10 @@ RADIUS = 0.4
 CENTRE = np.array([0.0, 0.0, 0.0])
 SUBDIVISIONS = 3
 VIEWS = 6
+#: The rounded box's exponent ``n`` (``|x|^n + |y|^n + |z|^n = 1``: 2 is a sphere, larger is boxier).
+BOX_EXPONENT = 6.0
+#: Grid segments along each edge of the rounded box's cube faces (``6 k^2 + 2`` vertices: 866).
+BOX_SEGMENTS = 12
 
 
 def icosphere(subdivisions: int = SUBDIVISIONS) -> tuple[np.ndarray, np.ndarray]:
@@ -55,6 +60,39 @@ def icosphere(subdivisions: int = SUBDIVISIONS) -> tuple[np.ndarray, np.ndarray]
             refined += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
         faces = refined
     return np.asarray(points), np.asarray(faces, np.int64)
+
+
+def rounded_box(segments: int = BOX_SEGMENTS, exponent: float = BOX_EXPONENT) -> tuple[np.ndarray, np.ndarray]:
+    """A rounded cube about the origin, scaled so that its farthest point (its 8 corners, on the
+    diagonals) is at distance 1: the superellipsoid ``|x|^n + |y|^n + |z|^n = a^n`` with ``n`` =
+    ``exponent`` and half-side ``a = 3^(-1/3)`` (about 0.69), its faces nearly flat and its edges
+    rounded. Tessellated on its own grid: each face of the cube ``[-1, 1]^3`` is cut into
+    ``segments x segments`` squares of two triangles, the vertices shared along the cube's edges
+    are merged, and every vertex is moved along its ray from the centre onto the surface.
+    Returns vertices ``(6 k^2 + 2, 3)`` float64 and faces ``(12 k^2, 3)`` int64 wound outwards
+    (``k = segments``)."""
+    if segments < 1 or exponent < 2:
+        raise ValueError(f"a rounded box needs segments >= 1 and exponent >= 2, got {segments}, {exponent}")
+    ticks = np.linspace(-1.0, 1.0, segments + 1)
+    u, v = (g.ravel() for g in np.meshgrid(ticks, ticks, indexing="ij"))
+    corner = (np.arange(segments)[:, None] * (segments + 1) + np.arange(segments)[None, :]).ravel()
+    quads = np.stack([corner, corner + segments + 1, corner + segments + 2, corner + 1], axis=1)
+    points: list[np.ndarray] = []
+    faces: list[np.ndarray] = []
+    for axis in range(3):
+        b, c = (axis + 1) % 3, (axis + 2) % 3      # e_b x e_c = e_axis: the grid's (u, v) wind outwards at +1
+        for sign in (1.0, -1.0):
+            grid = np.empty((len(u), 3))
+            grid[:, axis], grid[:, b], grid[:, c] = sign, u, v if sign > 0 else -v
+            quad = quads + len(u) * len(points)
+            faces += [quad[:, [0, 1, 2]], quad[:, [0, 2, 3]]]
+            points.append(grid)
+    cube = np.concatenate(points)
+    merged, index = np.unique(np.round(cube, 9), axis=0, return_inverse=True)
+    faces_ = index.reshape(-1)[np.concatenate(faces)]
+    on_surface = merged / (np.abs(merged) ** exponent).sum(axis=1, keepdims=True) ** (1.0 / exponent)
+    on_surface /= np.linalg.norm(on_surface, axis=1).max()
+    return on_surface, faces_.astype(np.int64)
 
 
 def deform(vertices: np.ndarray, scale=(1.0, 1.0, 1.0), bump: float = 0.0, direction=(0.0, 1.0, 0.0),
