@@ -83,8 +83,8 @@ def test_a_rounded_box_target_renders_in_the_spheres_place(mi):
     """builtin rounded-box on shape-sphere (16x16, 2 spp): the box has its own grid (866
     vertices), its farthest vertex at the sphere's radius about its centre; the shape's span of
     the target values is NaN; every target image is the render of the scene with the box as its
-    mesh (the same seeds), smooth-shaded as the sphere is, not the sphere's; afterwards the scene's mesh holds exactly what it
-    held before the swap, its faces as loaded."""
+    mesh (the same seeds), smooth-shaded as the sphere is, not the sphere's; afterwards the
+    scene's mesh holds exactly what it held before the swap, its faces as loaded."""
     from types import SimpleNamespace
 
     from services.solver.estimators.render import render

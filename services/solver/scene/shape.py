@@ -40,7 +40,7 @@ import numpy as np
 #: The key suffix of a shape parameter.
 VERTICES = "vertex_positions"
 #: Points sampled on each surface by :func:`chamfer` (uniform by area).
-CHAMFER_POINTS = 100_000
+CHAMFER_POINTS = 30_000
 #: The seed of :func:`chamfer`'s points: the same surfaces give the same distance.
 CHAMFER_SEED = 0
 #: The mesh attributes a topology swap (:meth:`ShapeMesh.showing`) writes and restores.
@@ -258,12 +258,12 @@ def chamfer(a: Surface, b: Surface, points: int = CHAMFER_POINTS, seed: int = CH
     generator seeded ``seed`` on each side, so the same surfaces give the same number and
     ``chamfer(a, b) == chamfer(b, a)``); each distance is exact, point to nearest triangle
     (``gpytoolbox.squared_distance``, an AABB tree). The Monte Carlo error of the default
-    100,000 points, measured as the standard deviation over 20 seeds relative to the mean: 0.24%
-    for the icosphere of ``shape-sphere`` against its stretched and bumped target of
-    ``tests/unit/test_shape.py`` (Chamfer 0.035), 0.10% against the rounded box (0.065), 0.0001%
-    against a sphere 1% larger (0.004: every distance is nearly the same), 0.42% for the
-    35,947-vertex Stanford bunny against itself stretched by 10% along x (0.0018; 10 seeds).
-    Seconds on the 2-core CPU: 0.24 for two 642-vertex meshes, 0.7 for two of 35,947 vertices."""
+    30,000 points, measured as the standard deviation over seeds relative to the mean: 0.37%
+    (20 seeds) for the icosphere of ``shape-sphere`` against ``examples/shape.json``'s target
+    (Chamfer 0.087), 0.36% (10 seeds) for the 35,947-vertex Stanford bunny against itself
+    stretched by 10% along x (0.0020); with 100,000 points 0.24% and 0.42% of similar pairs.
+    Seconds on the 2-core CPU: 0.06 for two 642-vertex meshes, 0.27 for two of 35,947 vertices
+    (0.24 and 0.7 with 100,000 points, which every record of a shape job paid)."""
     import gpytoolbox
 
     def one_way(source: Surface, to: Surface) -> float:
