@@ -167,6 +167,12 @@ def main(argv: list[str] | None = None) -> None:
                                                               "examples/shape.json against the LargeSteps loop")
     parser.add_argument("--loop-guiding", default=None, help="--shape: the loop integrator's guiding "
                                                                   "(default: Mitsuba's; 'none' as the product)")
+    parser.add_argument("--target", default="deformed", choices=["deformed", "rounded-box"],
+                        help="--shape: the target shape (examples/shape.json's deformed sphere, or the built-in "
+                             "rounded box: another topology)")
+    parser.add_argument("--remesh-at", type=float, default=None, help="--shape: remesh once, the product before "
+                                                                      "this share of its iterations, the loop after "
+                                                                      "this share of its seconds (the tutorial's)")
     parser.add_argument("--no-loop", action="store_true", help="the product alone (a budget the loop was not "
                                                                "raced at); the results file is named '-product'")
     args = parser.parse_args(argv)
