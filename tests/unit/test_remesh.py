@@ -85,6 +85,20 @@ def test_the_schedule_is_checked():
         .fingerprint()
 
 
+def test_the_vertices_a_remesh_will_make_count_against_the_texel_limit(mi):
+    """642 vertices fit a limit of 1,000, but one remesh at half the edge makes about 2,568: the
+    preflight refuses the schedule, naming remesh_edge, before a worker runs it. Failed (no
+    error) before the check existed."""
+    from schemas.errors import InvalidJob
+    from services.solver.optimize.setup import check
+
+    with pytest.raises(InvalidJob, match="about 2568 vertices") as refused:
+        check(JobSpec.model_validate(_job()), max_texels=1000)
+    assert refused.value.field == "geometry.remesh_edge"
+    check(JobSpec.model_validate(_job()), max_texels=2600)
+    check(JobSpec.model_validate(_job(geometry={"remesh_at": [4], "remesh_edge": 1.0})), max_texels=1000)
+
+
 def test_the_parameter_set_takes_the_new_triangles(mi):
     """After ``ParameterSet.remesh`` the scene's mesh, the parameter's size and its values are the
     new triangles'; ``assign`` writes them back unchanged."""

@@ -32,6 +32,7 @@ from services.solver.scene.facts import SceneFacts, direct_reach, probe_scene
 from services.solver.scene.footprint import texel_footprint
 from services.solver.scene.load import LoadedScene, load_scene
 from services.solver.scene.params import ParameterSet
+from services.solver.scene.remesh import expected_vertices
 from services.solver.scene.target_shape import own_topology, target_surface
 from services.solver.scene.targets import ImageDecodeError, decode_image
 from services.solver.seeds import derive_seed
@@ -222,6 +223,14 @@ def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None
         raise InvalidJob("parameters", f"the optimized meshes have {vertices} vertices (and the textures "
                                        f"{split.texels} texels), more than the limit of {max_texels} together "
                                        f"(NDRF_MAX_TEXELS)")
+    remeshed = sum(expected_vertices(mesh.size // 3, spec.geometry.remesh_edge, len(spec.geometry.remesh_at))
+                   for mesh in parameters.shapes.values())
+    if max_texels is not None and spec.geometry.remesh_at and split.texels + remeshed > max_texels:
+        raise InvalidJob("geometry.remesh_edge", f"remeshing {len(spec.geometry.remesh_at)} time(s) to edges of "
+                                                 f"{spec.geometry.remesh_edge} of their mean length gives the optimized "
+                                                 f"meshes about {remeshed} vertices (from {vertices}: 1/edge^2 each "
+                                                 f"time), more than the limit of {max_texels} with the textures' "
+                                                 f"{split.texels} texels (NDRF_MAX_TEXELS)")
     check_head(spec, [info.owner for info in parameters.infos])
     check_carry(spec, parameters.n, [t.key for t in split.textures])
     scene_values = parameters.values()
