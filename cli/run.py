@@ -89,6 +89,12 @@ def _final_table(summary: dict, out: Path):
         row, caption = _texture_row(key, files, out, inits.get(key))
         table.add_row(*row)
         captions.append(caption)
+    for shape, mesh in (summary.get("meshes") or {}).items():
+        chamfer = mesh.get("chamfer")
+        table.add_row(f"{shape}.vertex_positions ({mesh['vertices']} vertices)", "", mesh["file"],
+                      "-" if chamfer is None else f"Chamfer {chamfer:.4f}")
+        captions.append(f"{shape}: {mesh['file']}" + ("" if chamfer is None else
+                                                       f", Chamfer distance {chamfer:.4g} to the target surface"))
     estimate, stopped = summary.get("estimate") or {}, summary.get("stopped") or {}
     if estimate.get("window"):
         first, last = estimate["window"]

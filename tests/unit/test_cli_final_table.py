@@ -1,5 +1,6 @@
-"""``ndrf run``'s final table for a texture job: the texture's mean per channel (initial, final,
-target) and its PSNR against the target, read from the job folder (no rendering)."""
+"""``ndrf run``'s final table, read from the job folder (no rendering): for a texture job the
+texture's mean per channel (initial, final, target) and its PSNR against the target; for a shape
+job each mesh's file, vertices and Chamfer distance."""
 
 from __future__ import annotations
 
@@ -43,3 +44,17 @@ def test_a_texture_without_a_target_has_no_psnr(tmp_path):
     console.print(_final_table(summary, tmp_path))
     text = console.export_text()
     assert "PSNR" not in text and "final/t.data.npy" in text
+
+
+def test_a_shape_row_names_the_mesh_file_and_its_chamfer_distance(tmp_path):
+    """Failed (an empty table) before meshes had rows."""
+    summary = {"method": "direct_projective", "status": "succeeded", "iterations": 40, "seconds": 37.0,
+               "scalars": [], "init": [], "final": [], "target": None,
+               "meshes": {"sphere": {"vertices": 2414, "faces": 4824, "chamfer": 0.006849, "file": "final/sphere.ply"},
+                          "other": {"vertices": 8, "faces": 12, "chamfer": None, "file": "final/other.ply"}}}
+    console = Console(width=200, record=True)
+    console.print(_final_table(summary, tmp_path))
+    text = console.export_text()
+    assert "sphere.vertex_positions (2414 vertices)" in text and "Chamfer 0.0068" in text
+    assert "sphere: final/sphere.ply, Chamfer distance 0.006849 to the target surface" in text
+    assert "other: final/other.ply" in text and "other: final/other.ply," not in text
