@@ -1,6 +1,7 @@
 """A pose recovered by the product's default job against Mitsuba's pose-estimation tutorial loop.
 
-``python -m bench.geometry [--mesh PLY] [--resolution 64] [--seeds 0,1,2] [--iterations 20]``
+``python -m bench.geometry [--mesh PLY] [--resolution 64] [--seeds 0,1,2] [--iterations 20]
+[--loop-lr 0.025] [--loop-against RESULTS.json]``
 
 (``--shape``: a mesh's shape instead, against the shape-optimization tutorial loop:
 :mod:`bench.geometry_shape`.)
@@ -17,7 +18,10 @@ generated block of the built-in ``pose-block``.
   degrees (the tutorial's scale of its angle), the vertices moved by ``mi.Transform4f`` about the
   mesh's centre, ``prb_projective`` with Mitsuba's defaults (its guide included), 16 spp, both
   views per iteration, the mean squared error summed over the views. It runs for the product's
-  wall-clock time of the same seed (equal compute), at least 2 iterations.
+  wall-clock time of the same seed (equal compute), at least 2 iterations. ``--loop-lr`` sweeps
+  its learning rate (the best setting of the loop a user would write); ``--loop-against`` runs
+  the loop alone, for the product's seconds of each seed as an earlier results file records them
+  (same machine), written as ``geometry-<scene>-loop-lr<lr>``.
 
 Per run: the final translation error (Euclidean, scene units), the rotation error (the largest
 of the three angles, degrees), seconds, iterations, and for the loop its best error on the way
@@ -101,7 +105,7 @@ def run_product(job: dict, folder: Path) -> dict:
             "standard_error": summary.get("standard_error"), "stopped": (summary.get("stopped") or {}).get("reason")}
 
 
-def run_loop(job: dict, shape: str, seconds: float, folder: Path) -> dict:
+def run_loop(job: dict, shape: str, seconds: float, folder: Path, lr: float = LOOP_LR) -> dict:
     """The tutorial's loop (module docstring) for ``seconds`` of wall-clock time."""
     import drjit as dr
     import mitsuba as mi
@@ -120,7 +124,7 @@ def run_loop(job: dict, shape: str, seconds: float, folder: Path) -> dict:
     centre = (first.min(axis=0) + first.max(axis=0)) / 2
     integrator = mi.load_dict({"type": "prb_projective"})
     targets = {s: mi.TensorXf(np.asarray(image, np.float32)) for s, image in prepared.targets.items()}
-    opt = mi.ad.Adam(lr=LOOP_LR)
+    opt = mi.ad.Adam(lr=lr)
     opt["t"], opt["a"] = mi.Vector3f(0, 0, 0), mi.Vector3f(0, 0, 0)
     curve, started, it = [], time.perf_counter(), 0
     while it < 2 or time.perf_counter() - started < seconds:
@@ -145,7 +149,7 @@ def run_loop(job: dict, shape: str, seconds: float, folder: Path) -> dict:
     return {"seconds": time.perf_counter() - started, "iterations": it, "final_error": final[1:3],
             "best_error": best[1:3], "best_iteration": best[0], "curve": curve,
             "settings": {"integrator": "prb_projective (Mitsuba's defaults, guiding octree)", "spp": LOOP_SPP,
-                         "lr": LOOP_LR, "optimizer": "mi.ad.Adam", "angle_scale_degrees": ANGLE_SCALE}}
+                         "lr": lr, "optimizer": "mi.ad.Adam", "angle_scale_degrees": ANGLE_SCALE}}
 
 
 def _row(label: str, seed: int, run: dict) -> list:
@@ -175,6 +179,10 @@ def main(argv: list[str] | None = None) -> None:
                                                                       "this share of its seconds (the tutorial's)")
     parser.add_argument("--no-loop", action="store_true", help="the product alone (a budget the loop was not "
                                                                "raced at); the results file is named '-product'")
+    parser.add_argument("--loop-lr", type=float, default=LOOP_LR, help="the loop's Adam learning rate (the "
+                                                                        "tutorial's 0.025)")
+    parser.add_argument("--loop-against", type=Path, default=None,
+                        help="the loop alone, for the product's seconds of each seed in this earlier results file")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     from services.solver.backend import use_mitsuba
@@ -191,18 +199,23 @@ def main(argv: list[str] | None = None) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         scene, shape = _scene(args.mesh, args.resolution, folder)
+        earlier = ({run["seed"]: run["product"] for run in json.loads(args.loop_against.read_text())["runs"]}
+                   if args.loop_against else {})
         for seed in (int(s) for s in args.seeds.split(",")):
             job = _job(scene, shape, args.resolution, args.iterations, seed)
-            product = run_product(job, folder / f"product-{seed}")
+            product = earlier[seed] if args.loop_against else run_product(job, folder / f"product-{seed}")
             runs.append({"seed": seed, "product": product})
-            rows.append(_row(f"product ({product['method']}, {product['optimizer']})", seed, product))
+            rows.append(_row(f"product ({product['method']}, {product['optimizer']})"
+                             + (f", from {args.loop_against.name}" if args.loop_against else ""), seed, product))
             if not args.no_loop:
-                loop = runs[-1]["loop"] = run_loop(job, shape, product["seconds"], folder)
-                rows.append(_row("tutorial loop", seed, loop))
+                loop = runs[-1]["loop"] = run_loop(job, shape, product["seconds"], folder, args.loop_lr)
+                rows.append(_row(f"tutorial loop (Adam {args.loop_lr:g})", seed, loop))
             log.info("seed %d: product %s, loop %s", seed, product["final_error"],
                      runs[-1]["loop"]["final_error"] if "loop" in runs[-1] else "not run")
     if args.no_loop:
         name += f"-product-{args.iterations}"
+    elif args.loop_against or args.loop_lr != LOOP_LR:
+        name += f"-loop-lr{args.loop_lr:g}"
     summary: dict[str, dict] = {}
     for who in ("product",) if args.no_loop else ("product", "loop"):
         errors = np.array([run[who]["final_error"] for run in runs], np.float64)
@@ -220,7 +233,9 @@ def main(argv: list[str] | None = None) -> None:
     medians = "\n".join(f"- {who}: translation {s['translation_median']:.4f} (range {s['translation_range'][0]:.4f}-"
                         f"{s['translation_range'][1]:.4f}), rotation {s['rotation_median']:.2f} deg (range "
                         f"{s['rotation_range'][0]:.2f}-{s['rotation_range'][1]:.2f})" for who, s in summary.items())
-    raced = ("Equal compute: the loop runs for the product's seconds of the same seed." if not args.no_loop else
+    raced = ("Equal compute: the loop runs for the product's seconds of the same seed"
+             + (f" as {args.loop_against.name} records them (the product's rows are copied from it)."
+                if args.loop_against else ".") if not args.no_loop else
              "The product alone (--no-loop): the loop was not run at this budget.")
     text = (f"# Pose: the product's default against the tutorial loop ({name}, {args.resolution}x"
             f"{args.resolution}, 2 views)\n\n{raced}\n\n{table}\n\nMedians over the seeds:\n\n{medians}\n")

@@ -197,8 +197,10 @@ def test_a_run_of_an_experiment_equals_the_same_job_alone(embedded):
     run_job = api.json("GET", f"/v1/experiments/{accepted['id']}/runs")[2][0]["job"]
     inside = json.loads((store / run_job / "summary.json").read_text())["final"]
     outside = json.loads((store / alone["id"] / "summary.json").read_text())["final"]
-    # different processes: equal up to float rounding of kernels traced anew (tests/service/test_loop.py)
-    np.testing.assert_allclose(inside, outside, rtol=1e-6, atol=1e-9)
+    # different processes: equal up to float rounding of kernels traced anew and of Dr.Jit's atomic
+    # adds into the gradient (tests/service/test_loop.py); CI measured 1.25e-6 relative after 4
+    # iterations, where another seed moves the answer by ~1e-2
+    np.testing.assert_allclose(inside, outside, rtol=1e-5, atol=1e-9)
     assert inside != base["parameters"][0]["init"]
 
 

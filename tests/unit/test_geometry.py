@@ -51,7 +51,8 @@ class Measures:
 
 def _parameters():
     return SimpleNamespace(has_textures=False, has_geometry=True, n=6, sizes=[3, 3], geometry=[True] * 6,
-                           step_units=lambda: np.array([1.0] * 3 + [180.0] * 3), shape_spans=lambda: [])
+                           step_units=lambda: np.array([1.0] * 3 + [180.0] * 3), shape_spans=lambda: [],
+                           flat_meshes=lambda: [])
 
 
 def test_keys_and_matrices():
