@@ -153,7 +153,8 @@ def run_remote(server: str, document: dict, base_dir: Path, quiet: bool) -> tupl
 
 def fetch_job(api: Client, job_id: str, out: Path, all_images: bool = False) -> list[Path]:
     """The job's record, iteration records, target images, the images of the last iteration that
-    wrote them (every such iteration with ``all_images``) and its latest checkpoint."""
+    wrote them (every such iteration with ``all_images``), its latest checkpoint and its answer's
+    files: recovered textures, meshes and poses (``final/``, as ``ndrf run`` writes them)."""
     base = f"/v1/jobs/{job_id}"
     out.mkdir(parents=True, exist_ok=True)
     job = api.job(job_id)
@@ -171,6 +172,10 @@ def fetch_job(api: Client, job_id: str, out: Path, all_images: bool = False) -> 
         for p in range(len(plan.get("scalars") or [])):
             written += _maybe(api, f"{base}/iterations/{k}/gradients/{p}.png", folder / f"gradient-{p}.png")
     written += _maybe(api, f"{base}/checkpoints/latest", out / "checkpoints" / "latest.pt")
+    finals = [f"{texture['key']}.{ext}" for texture in plan.get("textures") or [] for ext in ("npy", "exr")]
+    finals += [f"{shape}.ply" for shape in plan.get("shapes") or {}] + ["poses.json"]
+    for name in finals:   # a job that did not get to its end, or has no such parameter, has none: skipped
+        written += _maybe(api, f"{base}/final/{name}", out / "final" / name)
     return written
 
 

@@ -27,7 +27,7 @@ router = APIRouter(route_class=GuardedRoute, prefix="/v1/jobs/{job_id}", tags=["
                    responses={401: {"model": ProblemDetails}, 404: {"model": ProblemDetails}})
 
 Iteration = Annotated[int, PathParam(ge=0, le=10**7, description="0-based iteration index.")]
-PNG, NPY, EXR, PLY = "image/png", "application/x-npy", "image/x-exr", "application/x-ply"
+PNG, NPY, EXR, PLY, JSON = "image/png", "application/x-npy", "image/x-exr", "application/x-ply", "application/json"
 CHUNK = 1 << 16
 
 
@@ -184,6 +184,15 @@ def _texture(files: JobFiles, k: int | None, name: str):
     if not files.store.exists(key):
         raise _missing(what)
     return send(files, key, _TEXTURE_MEDIA[match.group(2)], what, filename=None if match.group(2) == "png" else name)
+
+
+@router.get("/final/poses.json", summary="Recovered poses", responses={200: {"content": {JSON: {}}}})
+def final_poses(job_id: str, runtime: RuntimeDep, caller: ReaderDep):
+    """A pose job's recovered poses, per shape: the translation, the angles, the 4x4 ``matrix``
+    (applied on top of the scene file's ``to_world``) and ``xml``, the ``<transform>`` to paste
+    back into the scene (written at the end)."""
+    files = runtime.service.files(job_id, caller)
+    return send(files, files.key("final/poses.json"), JSON, "recovered poses", filename="poses.json")
 
 
 @router.get("/final/{name}", summary="A recovered texture or mesh",

@@ -283,3 +283,51 @@ def _refused(client) -> bool:
     except ApiError as exc:
         return exc.status == 401
     return False
+
+
+def test_a_pose_and_an_albedo_run_in_one_experiment_through_the_service(embedded, tmp_path, monkeypatch):
+    """Geometry runs through the service, not only ``ndrf run``: ``examples/experiment-pose-albedo.json``
+    (the block's pose, then the floor's albedo) as one experiment; the pose run serves its
+    silhouettes and its recovered pose (the 4x4 matrix and the XML), the albedo run neither."""
+    api, _ = embedded
+    example = json.loads((Path(__file__).resolve().parents[2] / "examples" / "experiment-pose-albedo.json").read_text())
+    example["base"].update(iterations=4, images_every=1)
+    _, _, accepted = api.json("POST", "/v1/experiments", example)
+    experiment = wait_experiment(api, accepted["id"], 300)
+    assert experiment["status"] == "succeeded", experiment
+    runs = [run["job"] for run in api.json("GET", f"/v1/experiments/{accepted['id']}/runs")[2]]
+    pose, albedo = (api.json("GET", f"/v1/jobs/{job}")[2] for job in runs)
+    assert pose["plan"]["recipe"]["method"].endswith("_projective") and "block.to_world.rotate[1]" in pose["parameters"]
+    status, headers, png = api.request("GET", f"/v1/jobs/{pose['id']}/iterations/0/silhouette.png")
+    assert status == 200 and png.startswith(b"\x89PNG")
+    status, _, poses = api.json("GET", f"/v1/jobs/{pose['id']}/final/poses.json")
+    assert status == 200 and [entry["shape"] for entry in poses] == ["block"]
+    assert np.asarray(poses[0]["matrix"]).shape == (4, 4) and "<transform" in poses[0]["xml"]
+    assert api.request("GET", f"/v1/jobs/{albedo['id']}/final/poses.json")[0] == 404
+    from cli.main import main
+    monkeypatch.setenv("NDRF_API_KEY", "k1")
+    fetched = tmp_path / "fetched"
+    result = CliRunner().invoke(main, ["fetch", pose["id"], "--server", api.base, "--out", str(fetched)])
+    assert result.exit_code == 0, result.output
+    assert json.loads((fetched / "final" / "poses.json").read_text()) == poses
+    assert api.request("GET", f"/v1/jobs/{albedo['id']}/iterations/0/silhouette.png")[0] == 404
+
+
+def test_a_shape_jobs_mesh_is_served_and_fetched(embedded, tmp_path, monkeypatch):
+    """``examples/shape.json``, shortened, through the embedded service: the recovered mesh is
+    served as PLY and ``ndrf fetch`` writes it where ``ndrf run`` would, ``final/<shape id>.ply``."""
+    from cli.main import main
+    api, _ = embedded
+    job = json.loads((Path(__file__).resolve().parents[2] / "examples" / "shape.json").read_text())
+    job.update(iterations=3, render={"resolution": [16, 16]})
+    job["targets"]["synthetic"]["spp"] = 16
+    _, _, accepted = api.json("POST", "/v1/jobs", job)
+    assert api.wait_status(accepted["id"], FINISHED, 180)["status"] == "succeeded"
+    status, _, ply = api.request("GET", f"/v1/jobs/{accepted['id']}/final/sphere.ply")
+    assert status == 200 and ply.startswith(b"ply")
+    monkeypatch.setenv("NDRF_API_KEY", "k1")
+    fetched = tmp_path / "fetched"
+    result = CliRunner().invoke(main, ["fetch", accepted["id"], "--server", api.base, "--out", str(fetched)])
+    assert result.exit_code == 0, result.output
+    assert (fetched / "final" / "sphere.ply").read_bytes() == ply
+    assert not (fetched / "final" / "poses.json").exists()
