@@ -298,19 +298,19 @@ def test_a_pose_and_an_albedo_run_in_one_experiment_through_the_service(embedded
     runs = [run["job"] for run in api.json("GET", f"/v1/experiments/{accepted['id']}/runs")[2]]
     pose, albedo = (api.json("GET", f"/v1/jobs/{job}")[2] for job in runs)
     assert pose["plan"]["recipe"]["method"].endswith("_projective") and "block.to_world.rotate[1]" in pose["parameters"]
-    status, headers, png = api.request("GET", f"/v1/jobs/{pose['id']}/iterations/0/silhouette.png")
+    status, _, png = api.request("GET", f"/v1/jobs/{pose['id']}/iterations/0/silhouette.png")
     assert status == 200 and png.startswith(b"\x89PNG")
     status, _, poses = api.json("GET", f"/v1/jobs/{pose['id']}/final/poses.json")
     assert status == 200 and [entry["shape"] for entry in poses] == ["block"]
     assert np.asarray(poses[0]["matrix"]).shape == (4, 4) and "<transform" in poses[0]["xml"]
     assert api.request("GET", f"/v1/jobs/{albedo['id']}/final/poses.json")[0] == 404
+    assert api.request("GET", f"/v1/jobs/{albedo['id']}/iterations/0/silhouette.png")[0] == 404
     from cli.main import main
     monkeypatch.setenv("NDRF_API_KEY", "k1")
     fetched = tmp_path / "fetched"
     result = CliRunner().invoke(main, ["fetch", pose["id"], "--server", api.base, "--out", str(fetched)])
     assert result.exit_code == 0, result.output
     assert json.loads((fetched / "final" / "poses.json").read_text()) == poses
-    assert api.request("GET", f"/v1/jobs/{albedo['id']}/iterations/0/silhouette.png")[0] == 404
 
 
 def test_a_shape_jobs_mesh_is_served_and_fetched(embedded, tmp_path, monkeypatch):
