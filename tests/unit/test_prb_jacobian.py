@@ -25,6 +25,33 @@ def test_channel_groups_partition_scalars_with_disjoint_channels():
     assert channel_groups([]) == []
 
 
+def _greedy(channels):
+    """The partition by definition: each scalar in the first group that uses none of its channels."""
+    groups, used = [], []
+    for i, chans in enumerate(channels):
+        for group, taken in zip(groups, used):
+            if not taken & set(chans):
+                group.append(i)
+                taken |= set(chans)
+                break
+        else:
+            groups.append([i])
+            used.append(set(chans))
+    return groups
+
+
+def test_channel_groups_is_the_greedy_partition_and_near_linear_in_the_scalars():
+    rng = np.random.default_rng(0)
+    subsets = [(), (0,), (1,), (2,), (0, 1), (0, 2), (1, 2), (0, 1, 2)]
+    for n in (1, 2, 7, 50, 400):
+        channels = [subsets[k] for k in rng.integers(0, len(subsets), n)]
+        assert channel_groups(channels) == _greedy(channels), n
+    # a 100,000-vertex mesh: 300,000 coordinates, each changing all three channels (one group each);
+    # comparing every scalar with every group, as before, took 31.6 s at 8,000 vertices and hours here
+    vertices = channel_groups([(0, 1, 2)] * 300_000)
+    assert len(vertices) == 300_000 and vertices[-1] == [299_999]
+
+
 def _problem(merge: bool, resolution=(16, 16)):
     from services.solver.estimators.layout import DerivativeLayout
     from services.solver.estimators.problem import Problem
