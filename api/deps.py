@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hmac
 from typing import Annotated
+from urllib.parse import unquote_plus
 
 from fastapi import Depends, Request
 
@@ -72,13 +73,25 @@ def require_caller(request: Request, settings: SettingsDep) -> Caller:
     return caller
 
 
+def literal_token(request: Request) -> str | None:
+    """The ``token`` query parameter, its name spelled literally (the last one, as
+    ``query_params.get``). A name that only decodes to ``token`` (``?tok%65n=...``) is not
+    accepted: a log or a proxy that matches the literal name would not know it carries a secret."""
+    token = None
+    for part in request.url.query.split("&"):
+        name, equals, value = part.partition("=")
+        if name == "token" and equals:
+            token = unquote_plus(value)
+    return token
+
+
 def reader_of(request: Request, settings: Settings, resource_id: str) -> Caller:
     """A bearer key, or (GET only) a read token of this very resource (a job or an experiment):
     the caller then reads that one resource, and the routes it opens only touch ``resource_id``."""
     caller = caller_of(request, settings)
     if caller is not None:
         return caller
-    token = request.query_params.get("token")
+    token = literal_token(request)
     if request.method == "GET" and token and tokens.verify(settings.signing_secret(), token, resource_id):
         request.state.read_token = True   # answers never mint a new token for it (tokens must expire)
         return Caller(f"token:{resource_id}", admin=True)

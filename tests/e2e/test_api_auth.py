@@ -67,6 +67,8 @@ def test_read_tokens_open_one_jobs_get_routes_only(served):
     anonymous = Api(api.base, None)
     assert anonymous.request("GET", f"/v1/jobs/{job_id}/targets/0.png?token={token}")[0] == 200
     assert anonymous.request("GET", f"/v1/jobs/{job_id}/events?token={token}")[0] == 200
+    for name in ("tok%65n", "%74oken"):            # only the literal name: a log or proxy matches that one
+        assert anonymous.request("GET", f"/v1/jobs/{job_id}/events?{name}={token}")[0] == 401, name
     assert anonymous.request("POST", f"/v1/jobs/{job_id}/cancel?token={token}")[0] == 401     # reads only
     assert anonymous.request("GET", f"/v1/jobs?token={token}")[0] == 401                      # this job only
     other = bob.json("POST", "/v1/jobs", small_job("direct", iterations=1))[2]["id"]

@@ -97,6 +97,9 @@ def test_results_csv_escapes_names_and_values():
 def test_tokens_are_redacted_from_access_log_records():
     assert redact("/v1/jobs/j1/events?token=j1.123.abc&after=3") == "/v1/jobs/j1/events?token=REDACTED&after=3"
     assert redact("/v1/jobs/j1?after=1&TOKEN=x") == "/v1/jobs/j1?after=1&TOKEN=REDACTED"
+    for name in ("tok%65n", "%74oken", "%54OKEN", "access%5ftoken"):           # names percent-encoded
+        assert redact(f"/v1/jobs/j1?a=1&{name}=secret&b=2") == f"/v1/jobs/j1?a=1&{name}=REDACTED&b=2", name
+    assert redact("/v1/jobs/j1?after=3&tokens=kept") == "/v1/jobs/j1?after=3&tokens=kept"
     record = logging.LogRecord("uvicorn.access", logging.INFO, __file__, 1, '%s - "%s %s HTTP/%s" %d',
                                ("127.0.0.1:1", "GET", "/v1/jobs/j?token=secret", "1.1", 200), None)
     assert RedactTokens().filter(record) and "secret" not in record.getMessage()
