@@ -15,6 +15,7 @@ import click
 from cli.experiment_report import fmt, runs_table
 from client import ApiError, Client, is_experiment_id, pack_scene
 from client.scenes import SceneError
+from schemas.files import mesh_name
 
 server_option = click.option("--server", default="http://127.0.0.1:8000", show_default=True, envvar="NDRF_SERVER",
                              help="The server's URL (or NDRF_SERVER); the key is NDRF_API_KEY.")
@@ -173,7 +174,7 @@ def fetch_job(api: Client, job_id: str, out: Path, all_images: bool = False) -> 
             written += _maybe(api, f"{base}/iterations/{k}/gradients/{p}.png", folder / f"gradient-{p}.png")
     written += _maybe(api, f"{base}/checkpoints/latest", out / "checkpoints" / "latest.pt")
     finals = [f"{texture['key']}.{ext}" for texture in plan.get("textures") or [] for ext in ("npy", "exr")]
-    finals += [f"{shape}.ply" for shape in plan.get("shapes") or {}] + ["poses.json"]
+    finals += [f"{mesh_name(shape)}.ply" for shape in plan.get("shapes") or {}] + ["poses.json"]
     for name in finals:   # a job that did not get to its end, or has no such parameter, has none: skipped
         written += _maybe(api, f"{base}/final/{name}", out / "final" / name)
     return written

@@ -165,7 +165,7 @@ def gradients_stack(job_id: str, k: Iteration, runtime: RuntimeDep, caller: Read
 _TEXTURE = re.compile(r"^([A-Za-z0-9_][A-Za-z0-9_.\-]{0,255})\.(png|npy|exr|ply)$")
 _TEXTURE_MEDIA = {"png": PNG, "npy": NPY, "exr": EXR, "ply": PLY}
 #: ``<shape id>.ply`` of an optimized mesh (the id as the writer names files: letters, digits, ``_-``).
-_MESH = re.compile(r"^([A-Za-z0-9_-]{1,255})\.ply$")
+_MESH = re.compile(r"^([A-Za-z0-9_~-]{1,255})\.ply$")  # schemas.files.mesh_name
 TextureName = Annotated[str, PathParam(description="'<key>.npy' (float32 H x W x C), '<key>.exr' (the same values, "
                                                    "OpenEXR 32-bit float) or '<key>.png' (preview) of a texture "
                                                    "parameter, e.g. 'wall.reflectance.data.npy'; per iteration also "

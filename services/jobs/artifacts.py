@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import base64
 import logging
-import re
 import time
 from collections.abc import Callable
 
 import numpy as np
 
+from schemas.files import mesh_name
 from schemas.outcomes import Outcome
 from schemas.records import IterationRecord, JobStatus
 from services.jobs.state import Fenced, JobStates
@@ -265,11 +265,6 @@ class JobWriter:
         self.states.transition(self.job_id, status, fence=self.attempt, expect={JobStatus.RUNNING},
                                error=data.get("error"), field=data.get("field"))
         return status
-
-
-def mesh_name(shape: str) -> str:
-    """A shape id as a file name (an XML id may hold '/' or '.')."""
-    return re.sub(r"[^A-Za-z0-9_-]", "_", shape) or "mesh"
 
 
 def _json(value) -> bytes:
