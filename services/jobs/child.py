@@ -35,7 +35,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from schemas.outcomes import Outcome
-from services.jobs.frames import array_bytes, read_frame, started, write_frame
+from services.jobs.frames import array_bytes, outcome_frame, read_frame, started, write_frame
 from services.jobs.isolation import apply_limits
 
 log = logging.getLogger("services.jobs.child")
@@ -204,7 +204,7 @@ def run(start: dict, out) -> None:
     scene_file = Path(start["scene_file"]) if start.get("scene_file") else None
     warm = Path(start["warm_file"]).read_bytes() if start.get("warm_file") else None
     outcome = InverseRenderingRun(spec, reporter, scene_file=scene_file, resume=resume, warm=warm).execute()
-    write_frame(out, "outcome", asdict(outcome))
+    write_frame(out, "outcome", *outcome_frame(asdict(outcome)))
 
 
 def view(start: dict, out) -> None:

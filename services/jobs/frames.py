@@ -105,3 +105,31 @@ def started(meta: dict, blobs: dict[str, bytes]) -> dict:
     files = {str(name): blobs[f"file-{i}"].decode("ascii") for i, name in enumerate(names)}
     spec = dict(meta["spec"], scene=dict(meta["spec"]["scene"], files=files))
     return {k: v for k, v in dict(meta, spec=spec).items() if k != "scene_files"}
+
+
+def outcome_frame(outcome: dict) -> tuple[dict, dict[str, bytes]]:
+    """The ``outcome`` frame of a child: a shape job's recovered meshes (base64 PLY, about 50 bytes
+    a vertex of a closed mesh, past the header's limit from about 335,000 vertices) travel as blobs;
+    :func:`outcome_of` puts them back."""
+    meshes = outcome.get("meshes")
+    if not meshes:
+        return outcome, {}
+    names = sorted(shape for shape, mesh in meshes.items() if "ply" in mesh)
+    kept = {shape: ({k: v for k, v in mesh.items() if k != "ply"} if shape in names else mesh)
+            for shape, mesh in meshes.items()}
+    meta = dict(outcome, meshes=kept, mesh_blobs=names)
+    return meta, {f"mesh-{i}": meshes[shape]["ply"].encode("ascii") for i, shape in enumerate(names)}
+
+
+def outcome_of(meta: dict, blobs: dict[str, bytes]) -> dict:
+    """The outcome dict :func:`outcome_frame` split: the meshes' PLY restored."""
+    names = meta.get("mesh_blobs")
+    if not names:
+        return meta
+    try:
+        meshes = dict(meta["meshes"])
+        for i, shape in enumerate(names):
+            meshes[str(shape)] = dict(meshes[shape], ply=blobs[f"mesh-{i}"].decode("ascii"))
+    except (KeyError, TypeError, UnicodeDecodeError) as exc:
+        raise FrameError(f"malformed outcome meshes: {exc}") from None
+    return {k: v for k, v in dict(meta, meshes=meshes).items() if k != "mesh_blobs"}

@@ -39,7 +39,7 @@ from schemas.job import JobSpec
 from schemas.outcomes import Outcome
 from schemas.records import IterationRecord, JobStatus
 from services.jobs.artifacts import BudgetExceeded, JobWriter
-from services.jobs.frames import FrameError, array_from, read_frame, start_frame, write_frame
+from services.jobs.frames import FrameError, array_from, outcome_of, read_frame, start_frame, write_frame
 from services.jobs.isolation import Child, ChildFailed, ChildLimits, kernel_cache, sandboxed
 from services.jobs.preflight import upload_limits
 from services.jobs.quotas import attempt_budget
@@ -219,7 +219,7 @@ class AttemptRunner:
         kind, meta, blobs = item
         try:
             if kind == "outcome":
-                return self._handle_outcome(writer, meta)
+                return self._handle_outcome(writer, outcome_of(meta, blobs))
             self._dispatch(writer, kind, meta, blobs)
         except BudgetExceeded as exc:
             child.kill()

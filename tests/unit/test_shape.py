@@ -310,3 +310,30 @@ def test_a_flat_shaded_mesh_is_named_in_the_plan(mi, sphere):
     posed = ParameterSet(block.params, ["block.to_world.translate"])
     assert posed.flat_meshes() == ["block"]
     assert "block: flat-shaded" in flat_shading_warning(posed.flat_meshes())
+
+
+def test_a_million_vertex_final_mesh_travels_whole_from_the_child():
+    """The child's outcome carries each recovered mesh; a header holds 16 MiB, and a 1,000,000-vertex
+    PLY of as many triangles is 25 MB (33 MB in base64): before, the parent refused the finished
+    job's outcome as a malformed report ("frame header of ... bytes exceeds 16777216") and the
+    mesh was lost."""
+    import base64
+    import io
+
+    from services.jobs.frames import MAX_HEADER_BYTES, outcome_frame, outcome_of, read_frame, write_frame
+
+    n = 1_000_000
+    vertices = np.random.default_rng(0).random((n, 3), dtype=np.float32)
+    faces = np.stack([np.arange(n - 2), np.arange(1, n - 1), np.arange(2, n)], 1)
+    ply = base64.b64encode(ply_bytes(vertices, faces)).decode("ascii")
+    assert len(ply) > MAX_HEADER_BYTES
+    outcome = {"status": "succeeded", "iterations": 2, "seconds": 1.0,
+               "meshes": {"a.b": {"ply": ply, "vertices": n, "chamfer": 0.1}, "c": {"vertices": 3}}}
+    stream = io.BytesIO()
+    write_frame(stream, "outcome", *outcome_frame(outcome))
+    stream.seek(0)
+    kind, meta, blobs = read_frame(stream)
+    assert kind == "outcome" and outcome_of(meta, blobs) == outcome
+    assert read_ply(base64.b64decode(outcome_of(meta, blobs)["meshes"]["a.b"]["ply"]))[0].shape == (n, 3)
+    plain = {"status": "failed", "iterations": 0, "seconds": 0.0}
+    assert outcome_frame(plain) == (plain, {})
