@@ -95,9 +95,11 @@ class TrainingConfig(BaseModel):
 
     residual_points: int = Field(4096, ge=64, le=262144,
                                  description="N: residual points (x, ω_o) per training step and per residual (Eq. 8).")
-    incident_samples: int = Field(16, ge=1, le=256,
+    incident_samples: int = Field(4, ge=1, le=256,
                                   description="M: incident samples per residual point, each one emitter and one "
-                                              "BSDF sample combined by MIS (Eq. 9).")
+                                              "BSDF sample combined by MIS (Eq. 9). The fields are queried at "
+                                              "N·M points per step: four cost a quarter of sixteen, and the "
+                                              "residual's noise averages over steps (bench/ndrf_cost.py).")
     camera_points: float = Field(0.25, ge=0.0, le=0.9,
                                  description="Fraction of residual points placed where the cameras look (first "
                                              "hits of primary rays, ω_o towards the camera), the rest uniform by "
@@ -107,9 +109,11 @@ class TrainingConfig(BaseModel):
     warmup_steps: int = Field(400, ge=0, le=100000,
                               description="Training steps before the first gradient is computed (with "
                                           "adaptive_steps: at most this many).")
-    steps_per_iteration: int = Field(20, ge=0, le=10000,
+    steps_per_iteration: int = Field(4, ge=0, le=10000,
                                      description="Fine-tuning steps per inverse-rendering iteration (Sec. 6.1; "
-                                                 "with adaptive_steps: at most this many).")
+                                                 "with adaptive_steps: at most this many). A warm network "
+                                                 "after a small parameter step needs few (bench/ndrf_cost.py, "
+                                                 "bench/pareto.py --variant ndrf).")
     adaptive_steps: bool = Field(False,
                                  description="Let the residual norms decide the steps: the warm-up stops when "
                                              "both residuals plateau, fine-tuning when they are back at their "

@@ -62,7 +62,7 @@ import numpy as np
 import torch
 
 from schemas.methods import Method
-from services.solver.estimators.methods.base import DIFFERENTIAL, RADIANCE, Fields, GradientMethod
+from services.solver.estimators.methods.base import DIFFERENTIAL, RADIANCE, Fields, GradientMethod, contract
 from services.solver.estimators.problem import Problem
 from services.solver.fields.field import evaluate
 from services.solver.jit_types import Bool, Color, MitsubaObject
@@ -200,6 +200,24 @@ class CameraHitMethod(GradientMethod):
         out = np.zeros(problem.parameters.n)
         out[list(problem.layout.scalars)] = active / passes
         return out
+
+    def candidate_gradient_and_images(self, problem, fields, loss, *, spp, gradient_spp, seed, depth, sensor=0):
+        """The candidate, ``z``, ``dz/dp`` ``(P,)`` and the Jacobian ``dI/dp`` ``(P, H, W, 3)`` from
+        one camera pass: the Jacobian's rays are the gradient's (one seed), so ``dz/dp`` is the
+        Jacobian contracted with ``dz/dy`` (Eq. 10; what :meth:`loss_gradient` computes ray by ray
+        with a box filter, and from the images with any other). The base class traces those rays
+        twice; for ``ndrf-lhs`` a pass is most of the gradient's cost (a hash-grid lookup and
+        ``dL_theta`` at every hit). A texture job without ``dL_theta`` keeps its backward mode."""
+        from services.solver.estimators.render import render
+
+        if problem.parameters.has_textures and not self.needs_differential:
+            return super().candidate_gradient_and_images(problem, fields, loss, spp=spp, gradient_spp=gradient_spp,
+                                                         seed=seed, depth=depth, sensor=sensor)
+        candidate = render(problem, spp=spp, seed=derive_seed(seed, "candidate"), sensor=sensor, depth=depth)
+        z, dz_dy = loss(candidate)
+        images = self.gradient_images(problem, fields, spp=gradient_spp, seed=derive_seed(seed, "gradient"),
+                                      sensor=sensor)
+        return candidate, z, contract(images, dz_dy), images
 
     def adjoint_gradient(self, problem: Problem, fields: Fields, dz_dy: np.ndarray, *, spp: int, seed: int,
                          sensor: int = 0) -> np.ndarray:
