@@ -18,6 +18,7 @@ from services.solver.optimize.resolve import (
     INDIRECT_SPP,
     MAX_GROWTH,
     MAX_JACOBIAN_RENDERS,
+    NDRF_MIN_WORK,
     OPEN_GROWTH,
     OPEN_START,
     resolve,
@@ -51,6 +52,10 @@ class Measures:
     def direct(self):
         self.asked.append("direct")
         return self._direct if self._direct is not None else [True] * 64
+
+    def film(self):
+        self.asked.append("film")
+        return (128, 128)
 
     def missing_energy(self, depth):
         self.asked.append("missing_energy")
@@ -148,7 +153,7 @@ def test_a_truncated_depth_is_said_with_what_it_misses_and_no_roulette_needs_a_d
 
 def test_the_trust_region_grows_faster_where_light_leaves_the_scene():
     opened = choose(_spec(), [3, 3], sensors=8, measures=Measures(closure=0.85))
-    closed = choose(_spec(), [3, 3], sensors=8, measures=Measures(closure=CLOSED))
+    closed = choose(_spec(iterations=10), [3, 3], sensors=8, measures=Measures(closure=CLOSED))  # a short run: prb
     assert (opened.steps.trust_growth, closed.steps.trust_growth) == (OPEN_GROWTH, CLOSED_GROWTH)
     assert (opened.steps.trust_start, closed.steps.trust_start) == (OPEN_START, CLOSED_START)
     assert OPEN_START > CLOSED_START
@@ -158,6 +163,26 @@ def test_the_trust_region_grows_faster_where_light_leaves_the_scene():
     adam = Measures(closure=0.1)
     assert choose(_spec(optimizer="adam"), [3, 3], sensors=8, measures=adam).steps.trust_growth == CLOSED_GROWTH
     assert "closure" not in adam.asked                                          # measured only for Levenberg-Marquardt
+
+
+def test_auto_trains_a_field_in_a_closed_scene_whose_run_pays_for_the_warm_up(effects_from_bounces):
+    pixels = 128 * 128
+    long_run = -(-NDRF_MIN_WORK // pixels)                      # the fewest iterations that pay (at 128x128)
+    closed = Measures(closure=CLOSED, first_bounces=[1] * 6)
+    recipe = choose(_spec(iterations=long_run), [3, 3], sensors=8, measures=closed)
+    said = {d.what: d for d in recipe.decisions}
+    assert recipe.method == "ndrf-lhs" and recipe.steps.optimizer == "levenberg-marquardt"
+    assert "closed scene" in said["method"].reason and "pareto-ndrf" in said["method"].reason
+    assert recipe.differential and recipe.fields_for == "ndrf-lhs"  # its dL_theta is trained for it
+    short = choose(_spec(iterations=long_run - 1), [3, 3], sensors=8, measures=Measures(closure=CLOSED))
+    assert short.method == "prb" and "warm-up would cost more" in {d.what: d for d in short.decisions}["method"].reason
+    opened = choose(_spec(iterations=10 * long_run), [3, 3], sensors=8, measures=Measures(closure=CLOSED - 0.01))
+    assert opened.method == "prb" and "open scene" in {d.what: d for d in opened.decisions}["method"].reason
+    for other in ({"loss": "l1"}, {"optimizer": "adam"}, {"jacobian": "differential-field"}):
+        asked = Measures(closure=1.0, first_bounces=[1] * 6)
+        assert choose(_spec(iterations=long_run, **other), [3, 3], sensors=8, measures=asked).method == "prb", other
+        assert "film" not in asked.asked                       # no field unless Levenberg-Marquardt steps on l2
+    assert choose(_spec(iterations=long_run), [3] * 5, sensors=8, measures=closed).method == "prb"  # > 12 scalars
 
 
 def test_scalars_seen_only_through_interreflection_start_at_more_samples(effects_from_bounces):

@@ -11,7 +11,14 @@ samples per pixel). The rules and what they rest on (``bench/results/``):
 
 * **prb with Russian roulette** gives an unbiased gradient at the price of one render; with 1
   spp and one view per iteration it is the fastest hand-written Mitsuba loop in every scene
-  measured, so it is the gradient of ``auto``.
+  measured, so it is the gradient of ``auto`` in open scenes.
+* **ndrf-lhs in a closed scene** (closure at least :data:`CLOSED`, scalars only, at most
+  :data:`NDRF_MAX_SCALARS`, an ``l2`` loss that Levenberg-Marquardt steps on, a run of at least
+  :data:`NDRF_MIN_WORK` pixel-iterations that pays for the warm-up): a prb render costs
+  more with every bounce and its forward-mode Jacobian is noise at 1 spp, while an NDRF iteration
+  costs the same at any depth and its Jacobian is ``dL_theta`` at the camera hits (the candidate
+  stays path-traced, so the answer is where the path-traced images match). ``python -m
+  bench.pareto --jobs room-closed-8 --variant prb`` measures it at equal seconds.
 * **Levenberg-Marquardt** reaches the answer in a few steps where Adam is limited to the
   learning rate per step, when its Jacobian is cheap: a forward-mode render per group of
   scalars that change distinct RGB channels. ``auto`` takes it when the loss is ``l2`` and
@@ -103,6 +110,14 @@ GEOMETRY_SPP = 16
 MAX_GEOMETRY_RENDERS = 12
 #: The path depth of direct illumination (emitters seen and one bounce), what ``direct_projective`` renders.
 DIRECT_DEPTH = PathDepth(2, None)
+#: ``auto`` trains a field (``ndrf-lhs``) in a closed scene for at most this many scalars (its
+#: ``dL_theta`` has an output per scalar and channel; the closed rooms measured have six).
+NDRF_MAX_SCALARS = 12
+#: ... and a job of at least this many pixel-iterations (the smallest target view's pixels times the
+#: iterations). prb in a closed scene costs about 140 us per pixel-iteration on 2 CPU cores, batch
+#: growth and Jacobian renders included (bench/results/pareto.md: 75 s for 30 x 128², 16 s for 30 x
+#: 64²), the field's warm-up 20-40 s: below this (about 37 s of prb) the warm-up does not pay.
+NDRF_MIN_WORK = 1 << 18
 #: The methods whose paths are Mitsuba's (forward-mode Jacobian renders, one per channel group).
 PATH_METHODS = (Method.PRB, Method.PRB_PROJECTIVE, Method.DIRECT_PROJECTIVE)
 
@@ -162,12 +177,42 @@ class Parameters(Protocol):
         """``(key, (H, W, C))`` of each texture parameter."""
 
 
-def fields_method(spec: JobSpec) -> str | None:
-    """The method whose fields the run trains, which the effects are chosen for: the job's own,
-    or ``ndrf-lhs`` when its ``dL_theta`` is the Jacobian of another method (the hybrid); None
-    when no field is trained (``prb``, ``direct``) or the many-parameter head simulates every
-    effect (no per-scalar choice of P scalars)."""
-    method = str(Method.PRB) if spec.method == AUTO else str(spec.method)
+def _auto_method(spec: JobSpec, parameters: Parameters, measures: Measures, decide) -> str:
+    """``auto``'s gradient method for scalars (module docstring): ``ndrf-lhs`` in a closed scene
+    whose run pays for the warm-up, when Levenberg-Marquardt will take the steps; else ``prb``."""
+    eligible = (spec.optimizer in ("auto", "levenberg-marquardt") and spec.loss == "l2" and spec.jacobian == "method"
+                and spec.training.head is None and not parameters.has_textures and parameters.n <= NDRF_MAX_SCALARS)
+    closure = measures.closure() if eligible else None
+    why = ""
+    if closure is not None:
+        share = f"{closure:.0%} of the light a surface reflects hits another surface"
+        if closure < CLOSED:
+            why = f"{share} (an open scene: short paths, where a prb iteration is cheaper than training a field); "
+        else:
+            width, height = measures.film()
+            work = width * height * spec.iterations
+            size = f"{work / 2**10:.0f} Ki pixel-iterations ({NDRF_MIN_WORK / 2**10:g} Ki pay for the warm-up)"
+            if work >= NDRF_MIN_WORK:
+                decide("method", str(Method.NDRF_LHS),
+                       f"{share} (a closed scene) and {size}: light paths are long, a prb render costs more with "
+                       f"every bounce and its forward-mode Jacobian is noisy, while an NDRF iteration costs the same "
+                       f"at any depth and its Jacobian is a smooth field query; at equal seconds its answer was "
+                       f"better on room-closed-8 (bench/results/pareto-ndrf.md)")
+                return str(Method.NDRF_LHS)
+            why = f"{share} (a closed scene), but only {size}: the field's warm-up would cost more than it saves; "
+    decide("method", str(Method.PRB), f"prb: {why}an unbiased gradient for one adjoint render per view, whatever the "
+                                      f"number of scalars; no field to train before the first step")
+    return str(Method.PRB)
+
+
+def fields_method(spec: JobSpec, method: str | None = None) -> str | None:
+    """The method whose fields the run trains, which the effects are chosen for: ``method`` (the
+    resolved one; default the job's own, ``prb`` for ``auto``), or ``ndrf-lhs`` when its
+    ``dL_theta`` is the Jacobian of another method (the hybrid); None when no field is trained
+    (``prb``, ``direct``) or the many-parameter head simulates every effect (no per-scalar choice
+    of P scalars)."""
+    if method is None:
+        method = str(Method.PRB) if spec.method == AUTO else str(spec.method)
     if spec.training.head is not None:
         return None
     if spec.jacobian == "differential-field":
@@ -188,10 +233,7 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
     if parameters.has_geometry:
         method = geometry_method(spec, measures, decide, direct=DIRECT_DEPTH, limit=MISSING_ENERGY)
     else:
-        method = str(Method.PRB) if spec.method == AUTO else str(spec.method)
-        if spec.method == AUTO:
-            decide("method", method, "prb: an unbiased gradient for one adjoint render per view, whatever the number "
-                                     "of scalars; no field to train before the first step")
+        method = _auto_method(spec, parameters, measures, decide) if spec.method == AUTO else str(spec.method)
     decide("depth", depth.describe(),
            "the job's render.max_depth / rr_depth" if spec.render.max_depth or spec.render.rr_depth != 5
            else "Mitsuba's default: every bounce, so photographs and candidates agree (no depth bias)")
@@ -204,7 +246,7 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
                             f"biased; leave render.max_depth unset for unbounded paths with Russian roulette")
     if parameters.has_geometry and (flat := flat_shading_warning(parameters.flat_meshes())) is not None:
         warnings.append(flat)
-    planned_for = fields_method(spec) if not parameters.has_geometry else None
+    planned_for = fields_method(spec, method) if not parameters.has_geometry else None
     effects = None
     if planned_for is not None:
         effects = choose_effects(measures.facts(), planned_for, method_class(planned_for).uses, spec.effects,
