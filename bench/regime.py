@@ -6,7 +6,8 @@ Every row is the same problem: the job's scene, initial values, bounds and targe
 (``prepare``). The loop rows are :mod:`bench.mitsuba_loop`'s grid (Mitsuba's tutorial loop with
 ``prb``); the product rows are the job through ``run_local`` (the product's own loop, records and
 files included) with the changes of :data:`VARIANTS`. ``default`` is the job with only its scene,
-parameters, targets and iterations: what a user gets without tuning anything.
+parameters, targets, iterations and film (:func:`default_job`): what a user gets without tuning
+anything.
 
 Clock. Scene loading and target rendering are outside it for everyone. The loop's clock starts at
 its first iteration. The product's adds the seconds spent deciding (the effect probe and the depth
@@ -40,12 +41,15 @@ log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parent.parent
 
-#: the four fields a default job keeps
+#: the fields a default job keeps: the problem as the example states it (its film included), none
+#: of its recipe
 DEFAULT_FIELDS = ("scene", "parameters", "targets", "iterations")
 
 #: name -> changes to the default job
 VARIANTS: dict[str, dict] = {
     "default": {},
+    "prb": {"method": "prb"},         # the open scenes' auto recipe, forced
+    "ndrf": {"method": "ndrf-lhs"},   # the closed scenes' auto recipe, forced
     "adam": {"method": "prb", "optimizer": "adam"},
     "gauss-newton": {"method": "prb", "optimizer": "gauss-newton"},
     "levenberg-marquardt-lr-0.2": {"method": "prb", "optimizer": "levenberg-marquardt", "learning_rate": 0.2},
@@ -59,7 +63,14 @@ VARIANTS: dict[str, dict] = {
 
 
 def default_job(job: dict) -> dict:
-    return {key: job[key] for key in DEFAULT_FIELDS if key in job}
+    """The example ``job`` with only what a user must state: :data:`DEFAULT_FIELDS` and the film
+    (``render.resolution``: the targets' size is the problem's, not a choice of the recipe; before,
+    the demo ran at the scene's 256x256 where its file says 64x64)."""
+    out = {key: job[key] for key in DEFAULT_FIELDS if key in job}
+    resolution = (job.get("render") or {}).get("resolution")
+    if resolution is not None:
+        out["render"] = {"resolution": resolution}
+    return out
 
 
 def merge(base: dict, change: dict) -> dict:
