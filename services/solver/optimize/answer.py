@@ -32,10 +32,14 @@ A run without a curvature (Adam: textures, the ``l1`` loss, many scalars) has no
 batch-means error of that mean, in memory bounded whatever ``P`` (a million texels).
 
 The window. The model is local: far from the answer ``H`` changes and the Newton estimates of
-early iterations are off. The window is the longest suffix of the run whose two halves give
+early iterations are off. A :class:`NewtonAnswer`'s window never reaches into the first :data:`TAIL` of the run (a
+suffix average, Rakhlin, Shamir & Sridharan 2012: the transient is left out whatever a test says
+of it; on the demo the whole run had stayed in the window, its first iteration at the initial
+values, and the floor read from those iterations stopped a run at 17 of 120 iterations). Within
+that tail it is the longest suffix whose two halves give
 estimates that agree within the errors the recent half's noise gives them (``χ²`` of their
 difference below its :data:`AGREEMENT` quantile, :func:`consistent`), tried at lengths shrinking
-by a quarter from the whole run down to :data:`MIN_WINDOW` iterations. So it restarts when the
+by a quarter down to :data:`MIN_WINDOW` iterations. So it restarts when the
 parameters move. (With each half's own residuals, iterations the model does not fit widen their
 own error bars and pass: on the bright closed room the whole run stayed in the window, and the
 errors were twice the standard errors at every budget.)
@@ -64,6 +68,14 @@ MAX_WINDOW = 8192
 BATCHES = 16
 #: The χ² quantile two halves of a window must agree within.
 AGREEMENT = 0.99
+#: The share of the run, from its start, that no window reaches into.
+TAIL = 1 / 3
+
+
+def tail_length(seen: int) -> int:
+    """The longest window after ``seen`` iterations: the run past its first :data:`TAIL`, and at
+    least :data:`MIN_WINDOW` iterations."""
+    return max(MIN_WINDOW, seen - int(TAIL * seen))
 
 
 @dataclass(frozen=True)
@@ -171,6 +183,8 @@ class NewtonAnswer:
 
         testable = 2 * (p.shape[1] + 2)   # halves long enough to measure the noise in (2 degrees of freedom)
         length = k
+        while length > tail_length(self.seen):   # the lengths tried are the whole run's, shrunk to its tail
+            length = length * 3 // 4
         while length >= MIN_WINDOW:
             start, half = k - length, k - length + length // 2
             # the older half judged with the recent half's noise: iterations the quadratic model does
@@ -186,9 +200,11 @@ class NewtonAnswer:
             length = length * 3 // 4
         return Estimate(self.points[-1], None, last, last, "last")
 
-    def residual(self, k: int, view: int, residual: np.ndarray, jacobian: np.ndarray | None) -> None:
-        """Iteration ``k``'s block residual of ``view`` and its Jacobian, for the floor (:mod:`.floor`)."""
-        self.floor.observe(k, view, residual, jacobian)
+    def residual(self, k: int, view: int, residual: np.ndarray, jacobian: np.ndarray | None,
+                 weight: float = 1.0) -> None:
+        """Iteration ``k``'s block residual of ``view`` (from ``weight`` samples per pixel) and its
+        Jacobian, for the floor (:mod:`.floor`)."""
+        self.floor.observe(k, view, residual, jacobian, weight)
 
     def state_dict(self) -> dict:
         return {"first": self.first, "seen": self.seen, "points": np.array(self.points),
@@ -240,7 +256,8 @@ class MeanAnswer:
             self.totals = [self.totals[i] + self.totals[i + 1] for i in range(0, len(self.totals), 2)]
             self.counts = [self.counts[i] + self.counts[i + 1] for i in range(0, len(self.counts), 2)]
 
-    def residual(self, k: int, view: int, residual: np.ndarray, jacobian: np.ndarray | None) -> None:
+    def residual(self, k: int, view: int, residual: np.ndarray, jacobian: np.ndarray | None,
+                 weight: float = 1.0) -> None:
         """No floor without a curvature to turn it into parameter errors."""
 
     def _fit(self, a: int, b: int, noise: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

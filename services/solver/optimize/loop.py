@@ -164,7 +164,8 @@ class InverseRenderingRun:
                 self._stop_if_asked()
                 self._remesh_if_due(state.next_iteration, prepared, recipe, built, state)
                 answer = self._iteration(state.next_iteration, prepared, recipe, built, views, state)
-                reason = recipe.stop.reason(answer)
+                state.auto_held = state.auto_held + 1 if recipe.stop.auto_holds(answer) else 0
+                reason = recipe.stop.reason(answer, state.auto_held)
                 if reason is not None or state.next_iteration == self.spec.iterations:
                     k = state.next_iteration - 1
                     state.events.append(Decision("stop", state.next_iteration, reason or (
@@ -333,7 +334,7 @@ class InverseRenderingRun:
                 jacobian = estimate.jacobians.get(view)
                 loss = state.loss_of(prepared, view, recipe.blur_at(k))   # the residual of its images, as J
                 state.answer.residual(k, view, block_residual(loss.image(candidate), loss.target, block),
-                                      None if jacobian is None else jacobian[0])
+                                      None if jacobian is None else jacobian[0], state.batch.spp)
         weight = len(estimate.candidates) * state.batch.gradient_spp
         state.answer.observe(state.parameters, estimate.dz_dp, weight, None if curvature is None else curvature.hessian)
         return state.answer.estimate()
