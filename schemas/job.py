@@ -327,8 +327,9 @@ class StopSettings(_Strict):
                                               "with standard_error x max(|estimate|, 0.01).")
     auto: bool = Field(True, description="Stop by itself when more iterations would not improve the answer: once "
                                          "the run's own Monte Carlo noise is under half of what the targets' noise "
-                                         "and the model's misfit leave in every scalar (doubling the run would "
-                                         "then lower the standard error by less than 6%). Needs the curvature of "
+                                         "and the model's misfit leave in every scalar, and has been at each of "
+                                         "the last quarter of the run's iterations (doubling the run would then "
+                                         "lower the standard error by less than 6%). Needs the curvature of "
                                          "second-order steps; a first-order run stops at iterations.")
 
 

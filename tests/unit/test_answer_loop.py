@@ -71,3 +71,27 @@ def test_twice_the_iterations_never_returns_a_worse_answer(mi, tmp_path):
     short, long = [errors[s, 30] for s in (0, 1, 2)], [errors[s, 60] for s in (0, 1, 2)]
     assert np.median(long) < np.median(short), errors
     assert all(b <= 1.2 * a for a, b in zip(short, long)), errors      # no seed gets worse beyond its noise
+
+
+@pytest.mark.slow
+def test_the_demo_as_written_has_an_honest_error_bar_and_stops_only_at_its_accuracy(mi, tmp_path):
+    """``examples/demo.json`` as written (its 256-spp target, 64x64), seeds 0 to 4, 120 iterations.
+    Before the floor was read off the span of ``J`` from the window's candidates, ±2 SE held the
+    truth for 11 of 15 scalars (73%): the floor read 0, and the targets' noise moved two seeds by 3
+    SE; a seed whose floor read too high was stopped by ``stop.auto`` at iteration 17 with three
+    times the others' error. Calibrated would be 95% and a median |error|/SE of 0.67; the bounds
+    below leave room for 15 scalars' sampling (three channels of one wall per seed, correlated)."""
+    from tests.support.jobs import run_job
+
+    job = json.loads((ROOT / "examples" / "demo.json").read_text())
+    truth = np.asarray(job["targets"]["synthetic"]["values"]["red.reflectance.value"])
+    ratios, capped, stopped = [], [], []
+    for seed in range(5):
+        summary = run_job({**job, "iterations": 120, "seed": seed}, tmp_path / f"seed{seed}")
+        error = np.abs(np.asarray(summary["final"]) - truth)
+        ratios += list(error / np.asarray(summary["standard_error"]))
+        (capped if "cap of 120" in summary["stopped"]["reason"] else stopped).append(float(error.max()))
+    ratios = np.asarray(ratios)
+    assert np.mean(ratios <= 2) >= 0.85, ratios
+    assert 0.4 <= np.median(ratios) <= 1.2, ratios
+    assert capped and all(e <= 2 * np.median(capped) for e in stopped), (capped, stopped)

@@ -76,7 +76,7 @@ from services.solver.optimize.resolve_geometry import (
     remesh_schedule,
     shape_optimizer,
 )
-from services.solver.optimize.stopping import StopRule
+from services.solver.optimize.stopping import stop_rule
 from services.solver.scene.effects import Effects, choose_effects
 from services.solver.scene.facts import SceneFacts
 from services.solver.scene.footprint import pixels_per_texel
@@ -275,7 +275,7 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
                   curvature=curvature(spec, optimizer, blur is not None and pose, decide),
                   curvature_every=spec.jacobian_every, trust_growth=growth, trust_start=start,
                   restarts=remesh.at if remesh is not None else ())
-    stop = _stop(spec, optimizer, decide, not_before=remesh.at[-1] if remesh is not None else 0)
+    stop = stop_rule(spec, optimizer, decide, not_before=remesh.at[-1] if remesh is not None else 0)
     blocks = _texture_blocks(spec, parameters, measures, decide) if parameters.has_textures else ()
     radiance, differential = _fields(spec, method, planned_for, effects, depth)
     return Recipe(method=method, jacobian=spec.jacobian, fields_for=planned_for, depth=depth, effects=effects,
@@ -344,20 +344,6 @@ def _texture_blocks(spec: JobSpec, parameters: Parameters, measures: Measures, d
                f"pixels (median; textures.resolution 'full' keeps every texel free; bench.texture_footprint)")
         out.append((key, block))
     return tuple(out)
-
-
-def _stop(spec: JobSpec, optimizer: str, decide, not_before: int = 0) -> StopRule:
-    """When the run ends before ``iterations`` (:mod:`.stopping`), never before ``not_before``
-    (a shape job's last remesh)."""
-    asked = spec.stop
-    auto = asked.auto and optimizer != "adam"
-    if asked.auto and not auto:
-        decide("stop", "iterations", f"the answer's floor needs the curvature of second-order steps, and {optimizer} "
-                                     f"has none: the run ends at iterations ({spec.iterations})")
-    elif auto:
-        decide("stop", "auto", f"when more iterations would not improve the answer (the run's noise under half of "
-                               f"the floor the targets' noise leaves), at most {spec.iterations} iterations")
-    return StopRule(spec.iterations, asked.standard_error, asked.relative, auto, not_before)
 
 
 def derivative_layout(parameters: Parameters, effects: Effects | None, merge_channels: bool) -> DerivativeLayout:

@@ -39,6 +39,7 @@ class RunState:
     images: ImageSchedule = field(default_factory=ImageSchedule)
     losses: dict[int, ImageLoss] = field(default_factory=dict)   # each view's loss (its target on the device)
     blurred: dict[int, BlurredLoss] = field(default_factory=dict)  # each view's last blurred loss
+    auto_held: int = 0       # iterations in a row at which stop.auto's condition held (a resumed run re-earns them)
 
     def loss_of(self, prepared: Prepared, view: int, blur: float = 0.0) -> ImageLoss | BlurredLoss:
         """The loss of ``view`` against its target (made once: the target is kept on the device),
