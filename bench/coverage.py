@@ -67,7 +67,7 @@ def judge(runs: list[dict]) -> dict:
 def table(results: dict) -> str:
     rows = []
     for name, budgets in results["jobs"].items():
-        for budget, entry in budgets.items():
+        for entry in budgets.values():
             j = entry["judged"]
             stops = ", ".join(f"{s['iterations']} its ({s['to_capped']:.1f}x)" if s["to_capped"] else
                               f"{s['iterations']} its" for s in j["stopped"]) or "none"

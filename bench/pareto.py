@@ -54,7 +54,7 @@ import numpy as np
 
 from bench.common import machine, markdown_table, write_markdown
 from bench.mitsuba_loop import LoopSetting, run_loop
-from bench.regime import VARIANTS, default_job, merge
+from bench.regime import VARIANTS, default_job, dropped, merge
 
 log = logging.getLogger(__name__)
 
@@ -308,7 +308,7 @@ def main(argv: list[str] | None = None) -> None:
     for name in names:
         job = json.loads((ROOT / "examples" / f"{name}.json").read_text())
         texture = any(p["key"].endswith(".data") for p in job["parameters"])
-        rows: dict = {"texture": texture, "default": {}, "loops": {}}
+        rows: dict = {"texture": texture, "default": {}, "loops": {}, "dropped": dropped(job)}
         done = results.get(name, {}).get("default", {}) if args.reuse_default else {}
         for budget in budgets:
             iterations = max(2, int(round(budget * job["iterations"])))
@@ -331,7 +331,8 @@ def main(argv: list[str] | None = None) -> None:
         args.out.write_text(json.dumps({"machine": machine(), "results": results}, indent=1))
     lines, checks = [], {}
     for name, rows in results.items():
-        table, checks[name] = summarize(name, rows)
+        label = name if not rows.get("dropped") else f"{name} (the default recipe: not its {', '.join(rows['dropped'])})"
+        table, checks[label] = summarize(label, rows)
         lines += table
     text = markdown_table(["job", "budget (x iterations)", "default: error median (range)", "default s",
                            "best loop: error median (range)", "loop s", "best loop setting", "default <= loop",

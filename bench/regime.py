@@ -73,6 +73,16 @@ def default_job(job: dict) -> dict:
     return out
 
 
+def dropped(job: dict) -> list[str]:
+    """What :func:`default_job` leaves out of an example's file (its recipe's choices), as
+    ``key`` or ``render.key``: a row that runs the default job names them, since it does not run
+    the file as written."""
+    kept = default_job(job)
+    out = [key for key in job if key not in kept and key not in ("name", "seed", "render")]
+    out += [f"render.{key}" for key in (job.get("render") or {}) if key != "resolution"]
+    return sorted(out)
+
+
 def merge(base: dict, change: dict) -> dict:
     out = dict(base)
     for key, value in change.items():
