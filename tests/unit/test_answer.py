@@ -160,3 +160,22 @@ def test_the_floor_holds_while_the_steps_follow_the_candidates_noise():
         x = x + step * min(1.0, 0.01 / np.max(np.abs(step)))           # a trust region's capped step
     for start in (0, 200):
         np.testing.assert_allclose(np.sqrt(np.diag(floor.covariance(start, h_inv))), expected, rtol=0.3)
+
+
+def test_the_floor_keeps_bounded_memory_whatever_the_films_and_views():
+    """A 1024x1024 film's per-pixel residuals (3 Mi values) over 300 iterations of 20 views: the
+    floor keeps at most MAX_VIEWS views, MIN_CANDIDATES residuals of that size per view and
+    MAX_JACOBIANS Jacobians, and a small film up to MAX_KEPT residuals."""
+    from services.solver.optimize.floor import MAX_JACOBIANS, MAX_VALUES, MAX_VIEWS, MIN_CANDIDATES, Floor
+
+    floor, n = Floor(views=20), 3 << 20
+    residual, jacobian = np.zeros(n, np.float32), np.zeros((1, n), np.float32)
+    for k in range(300):
+        floor.observe(k, k % 20, residual, jacobian)
+    assert len(floor.kept) == MAX_VIEWS
+    assert all(len(kept) == MIN_CANDIDATES for kept in floor.kept.values())
+    assert all(len(js) <= MAX_JACOBIANS for js in floor.jacobians.values())
+    small = Floor(views=1)
+    for k in range(300):
+        small.observe(k, 0, np.zeros(3072), None)
+    assert len(small.kept[0]) == min(256, MAX_VALUES // 3072)

@@ -36,8 +36,14 @@ from __future__ import annotations
 
 import numpy as np
 
-#: The most recent candidates' residuals kept per view (each ``(n,)`` float32).
+#: The most recent candidates' residuals kept per view (each ``(n,)`` float32) ...
 MAX_KEPT = 256
+#: ... within this many values per view (8 MiB; at least :data:`MIN_CANDIDATES` residuals are kept).
+MAX_VALUES = 1 << 21
+#: The views whose candidates the floor keeps (the first seen; ``M`` is scaled to every view).
+MAX_VIEWS = 8
+#: The most recent Jacobians kept per view (their mean projects and weighs the window's residuals).
+MAX_JACOBIANS = 8
 #: The fewest candidates of a view that measure its floor (the spread needs a few).
 MIN_CANDIDATES = 4
 #: Blocks whose leverage ``Π_bb`` is above this hold too little of their residual off ``J`` to read it.
@@ -77,8 +83,9 @@ def target_variance(residuals: np.ndarray, weights: np.ndarray, jacobian: np.nda
 
 class Floor:
     """Keeps each view's recent block residuals ``(n,)`` with their iterations and samples, and
-    its recent Jacobians ``(P, n)``; :meth:`covariance` reads ``Cov_floor`` over a window, with
-    the mean of the window's Jacobians (or the last one before it)."""
+    its recent Jacobians ``(P, n)``, for at most :data:`MAX_VIEWS` views in bounded memory;
+    :meth:`covariance` reads ``Cov_floor`` over a window, with the mean of the window's Jacobians
+    (or the last one before it)."""
 
     def __init__(self, views: int):
         if views < 1:
@@ -93,13 +100,16 @@ class Floor:
         and its Jacobian ``(P, n)`` when the iteration measured one."""
         if not weight > 0:
             raise ValueError(f"a candidate's samples per pixel must be > 0, got {weight}")
+        if view not in self.kept and len(self.kept) >= MAX_VIEWS:
+            return
         kept, jacobians = self.kept.setdefault(view, []), self.jacobians.setdefault(view, [])
         if kept and kept[-1][2].shape != residual.shape:    # a new film (a remesh, a resolution stage)
             kept.clear()
             jacobians.clear()
         if jacobian is not None:
-            self.jacobians[view] = [*jacobians[-(MAX_KEPT - 1):], (k, np.asarray(jacobian, np.float32))]
-        self.kept[view] = [*kept[-(MAX_KEPT - 1):], (k, float(weight), np.asarray(residual, np.float32))]
+            self.jacobians[view] = [*jacobians[-(MAX_JACOBIANS - 1):], (k, np.asarray(jacobian, np.float32))]
+        most = min(MAX_KEPT, max(MIN_CANDIDATES, MAX_VALUES // max(residual.size, 1)))
+        self.kept[view] = [*kept[-(most - 1):], (k, float(weight), np.asarray(residual, np.float32))]
 
     def covariance(self, start: int, h_inv: np.ndarray) -> np.ndarray | None:
         """``Cov_floor`` ``(P, P)`` from the candidates of iterations ``>= start`` (the answer's
