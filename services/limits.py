@@ -93,9 +93,32 @@ def check_target_headers(spec: JobSpec, limits: Limits) -> None:
                     values_name="NDRF_MAX_IMAGE_VALUES")
 
 
+#: Seconds of a shape job's set-up per vertex it optimizes, to its first iteration: 38.1 s for
+#: 399,425 vertices on the 2-core CPU (``python -m bench.big_mesh``; set-up is linear in the
+#: vertices since #46), rounded up.
+SETUP_SECONDS_PER_VERTEX = 1e-4
+#: The share of the job budget (``NDRF_MAX_JOB_SECONDS``) its set-up may be estimated to take.
+SETUP_SHARE = 0.5
+
+
+def check_setup(spec: JobSpec, vertices: int, limits: Limits) -> None:
+    """Refuse a job whose set-up alone is estimated to take more than :data:`SETUP_SHARE` of its
+    budget, naming the field to change (a job that could not reach its first iteration would hold
+    a worker for the whole budget and return nothing)."""
+    estimate = vertices * SETUP_SECONDS_PER_VERTEX
+    if estimate > SETUP_SHARE * limits.job_seconds:
+        keys = [p.key for p in spec.parameters if p.key.endswith(".vertex_positions")]
+        raise InvalidJob("parameters", f"{', '.join(keys) or 'the meshes'}: {vertices} vertices to optimize, whose "
+                                       f"set-up is estimated at {estimate:.0f} s, more than {SETUP_SHARE:g} of the job "
+                                       f"budget of {limits.job_seconds:g} s (NDRF_MAX_JOB_SECONDS); optimize a coarser "
+                                       f"mesh (fewer vertices) or raise the budget")
+
+
 def check_scene_report(spec: JobSpec, report: dict, limits: Limits) -> None:
     """Caps on what the sandboxed loader read from the scene: sensors and their films (after
-    the job's ``render.resolution``), and the samples they imply."""
+    the job's ``render.resolution``), the samples they imply, and the set-up its meshes need
+    (:func:`check_setup`)."""
+    check_setup(spec, int(report.get("vertices") or 0), limits)
     sensors = report["sensors"]
     if len(sensors) > limits.sensors:
         raise InvalidJob("scene", f"the scene has {len(sensors)} sensors, more than the limit of {limits.sensors} "
