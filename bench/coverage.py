@@ -9,7 +9,8 @@ and budget the table gives the coverage of ±2 SE (the share of scalars whose tr
 standard errors of the answer: 95% when calibrated), the median |error| / SE (0.67 when calibrated;
 under 0.5 the error bars are wide, over 1.0 they are narrow), and the runs that ``stop.auto`` ended
 before the cap, with the ratio of their max error to the median max error of the runs that reached
-the cap. Results are written after each job, so a run cut short keeps what it measured.
+the cap. Results are written after each job and budget, so a run cut short keeps what it measured,
+and runs into an existing results file add to it (one budget of a costly job at a time).
 """
 
 from __future__ import annotations
@@ -94,7 +95,9 @@ def main(argv: list[str] | None = None) -> None:
         parser.error("--seeds needs a seed and --budgets positive multiples")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
 
-    results: dict = {"machine": machine(), "seeds": seeds, "budgets": budgets, "jobs": {}}
+    results: dict = {"machine": machine(), "jobs": {}}
+    if args.out.exists():            # runs of other jobs and budgets accumulate in one results file
+        results["jobs"] = json.loads(args.out.read_text())["jobs"]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     for name in jobs:
         job = json.loads((ROOT / "examples" / f"{name}.json").read_text())
