@@ -3,6 +3,7 @@
 error, per job.
 
     python -m bench.coverage --jobs demo --seeds 0,1,2,3,4 --budgets 1,4
+    python -m bench.coverage --jobs hidden-object --recipe default     # its recipe left to the product
 
 A budget is a multiple of the example's ``iterations`` (``1,4`` on the demo: 30 and 120). Per job
 and budget the table gives the coverage of ±2 SE (the share of scalars whose truth lies within two
@@ -70,7 +71,7 @@ def table(results: dict) -> str:
     for name, budgets in results["jobs"].items():
         for entry in budgets.values():
             j = entry["judged"]
-            stops = ", ".join(f"{s['iterations']} its ({s['to_capped']:.1f}x)" if s["to_capped"] else
+            stops = ", ".join(f"{s['iterations']} its ({s['to_capped']:.2f}x)" if s["to_capped"] else
                               f"{s['iterations']} its" for s in j["stopped"]) or "none"
             rows.append([name, entry["iterations"], len(entry["runs"]), j["median_error"],
                          "-" if j["coverage"] is None else f"{100 * j['coverage']:.0f}%",
@@ -86,6 +87,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--jobs", default="demo", help=f"examples, comma-separated (known: {', '.join(JOBS)})")
     parser.add_argument("--seeds", default="0,1,2,3,4")
     parser.add_argument("--budgets", default="1,4", help="multiples of each example's iterations")
+    parser.add_argument("--recipe", choices=("file", "default"), default="file",
+                        help="run each example as its file is written, or its default job "
+                             "(bench.regime.default_job: the recipe left to the product), named "
+                             "'<job> (default recipe)'")
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
     jobs = chosen(args.jobs, JOBS, parser, "job")
@@ -101,6 +106,10 @@ def main(argv: list[str] | None = None) -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     for name in jobs:
         job = json.loads((ROOT / "examples" / f"{name}.json").read_text())
+        if args.recipe == "default":
+            from bench.regime import default_job
+
+            job, name = default_job(job), f"{name} (default recipe)"
         for budget in budgets:
             iterations = max(1, round(budget * job["iterations"]))
             runs = [run(job, seed, iterations) for seed in seeds]
