@@ -205,14 +205,11 @@ def _auto_method(spec: JobSpec, parameters: Parameters, measures: Measures, deci
     return str(Method.PRB)
 
 
-def fields_method(spec: JobSpec, method: str | None = None) -> str | None:
+def fields_method(spec: JobSpec, method: str) -> str | None:
     """The method whose fields the run trains, which the effects are chosen for: ``method`` (the
-    resolved one; default the job's own, ``prb`` for ``auto``), or ``ndrf-lhs`` when its
-    ``dL_theta`` is the Jacobian of another method (the hybrid); None when no field is trained
-    (``prb``, ``direct``) or the many-parameter head simulates every effect (no per-scalar choice
-    of P scalars)."""
-    if method is None:
-        method = str(Method.PRB) if spec.method == AUTO else str(spec.method)
+    resolved one), or ``ndrf-lhs`` when its ``dL_theta`` is the Jacobian of another method (the
+    hybrid); None when no field is trained (``prb``, ``direct``) or the many-parameter head
+    simulates every effect (no per-scalar choice of P scalars)."""
     if spec.training.head is not None:
         return None
     if spec.jacobian == "differential-field":
