@@ -45,3 +45,16 @@ def test_the_default_recipe_batches_views_and_resumes_exactly(mi, tmp_path):
     assert [e["iteration"] for e in events if e["type"] == "resumed"][0] >= 4
     assert resumed["status"] == "succeeded"
     np.testing.assert_allclose(resumed["final"], reference["final"], rtol=1e-6, atol=1e-9)
+
+
+def test_a_cancel_during_the_set_up_ends_it_there(mi, tmp_path):
+    """A cancel asked while the job is being set up ends the run before the next set-up phase
+    (#46: a big mesh's set-up is cancelable, not only killed at the end of the grace period): no
+    synthetic target is rendered and no plan is written. Failed before the set-up's phases
+    polled the host (the first poll came after the targets, the plan already written)."""
+    from tests.support.jobs import run_job, small_job
+
+    summary = run_job(small_job(), tmp_path, should_stop=lambda: "canceled")
+    assert summary["status"] == "canceled" and summary["iterations"] == 0
+    assert not (tmp_path / "plan.json").exists()
+    assert not list(tmp_path.glob("targets/*"))

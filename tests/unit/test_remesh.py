@@ -152,7 +152,9 @@ def test_a_run_remeshes_goes_on_and_resumes_exactly(mi, tmp_path):
 
     def stop_after_the_remesh():
         calls["n"] += 1
-        return "interrupted" if calls["n"] > 6 else None   # polled once per iteration (no fields to train)
+        # polled at the set-up's 2 phases (the scene, the synthetic targets), then once per iteration
+        # (no fields to train)
+        return "interrupted" if calls["n"] > 8 else None
 
     out = tmp_path / "interrupted"
     assert run_job(job, out, should_stop=stop_after_the_remesh)["status"] == "interrupted"

@@ -33,25 +33,21 @@ import numpy as np
 from schemas.errors import InvalidJob
 from schemas.job import JobSpec
 from schemas.outcomes import Outcome
-from schemas.records import IterationRecord
 from services.solver.optimize.answer import Estimate
 from services.solver.optimize.background import BackgroundReporter
-from services.solver.optimize.build import Built, build
-from services.solver.optimize.estimate import BatchEstimate, block_of, estimate_batch
-from services.solver.optimize.floor import block_residual
+from services.solver.optimize.estimate import BatchEstimate
 from services.solver.optimize.images import render_views, silhouette_views
-from services.solver.optimize.recipe import Decision, Recipe
-from services.solver.optimize.regularize import regularized
-from services.solver.optimize.remeshing import adopt, remesh_run, topology
+from services.solver.optimize.plan import describe
+from services.solver.optimize.recipe import Decision
+from services.solver.optimize.remeshing import remesh_run, resumed
 from services.solver.optimize.report import RunAborted, RunOutcome, RunReporter, StopReason
 from services.solver.optimize.resolve import resolve, undetermined_texels
-from services.solver.optimize.setup import Prepared, prepare
-from services.solver.optimize.state import RunState, describe, initial_state, restore, save
-from services.solver.optimize.textures import TextureReport, record_fields
+from services.solver.optimize.run import Run
+from services.solver.optimize.setup import prepare
+from services.solver.optimize.state import RunState
+from services.solver.optimize.textures import TextureReport
 from services.solver.optimize.views import ViewStream
-from services.solver.scene.params import ParameterSet
 from services.solver.seeds import derive_seed
-from services.solver.training.trainer import FieldTrainer, fields_of
 
 log = logging.getLogger(__name__)
 
@@ -108,7 +104,8 @@ def final_textures(textures: TextureReport, state: RunState, undetermined: dict[
 
 
 class InverseRenderingRun:
-    """One execution (attempt) of a job.
+    """One execution (attempt) of a job: its :class:`~.run.Run` driven to the end, with every
+    step reported.
 
     ``scene_file``  the staged XML of an uploaded or local scene (None for built-ins)
     ``resume``      the bytes of a checkpoint to continue from
@@ -124,9 +121,8 @@ class InverseRenderingRun:
         self.warm = warm
         self.warm_report: dict | None = None
         self.method_name = str(spec.method)  # the method that runs: an auto job's choice once resolved
-        self.listed: TextureReport | None = None  # which scalars reports list (textures are summarised)
-        self.seconds: dict = {}                   # preparing and deciding (plan.json's prepared_seconds)
-        self.parameter_set: ParameterSet | None = None   # the job's parameters once prepared (their poses)
+        self.run: Run | None = None           # once prepared and resolved
+        self.seconds: dict = {}               # preparing and deciding (plan.json's prepared_seconds)
         self._target_silhouettes: dict[int, np.ndarray] = {}   # a geometry job's, by view (computed once)
 
     def execute(self) -> RunOutcome:
@@ -144,136 +140,132 @@ class InverseRenderingRun:
 
     def _execute(self) -> RunOutcome:
         started = time.perf_counter()
-        state: RunState | None = None
         try:
-            prepared, measures = prepare(self.spec, scene_file=self.scene_file,
-                                         on_phase=lambda what: self.reporter.progress("preparing", {"what": what}))
-            self.listed = prepared.textures
-            self.parameter_set = prepared.problem.parameters
+            prepared, measures = prepare(self.spec, scene_file=self.scene_file, on_phase=self._preparing)
             recipe = resolve(self.spec, prepared.problem.parameters, len(prepared.targets), measures)
             self.seconds = {**prepared.seconds, "resolve": sum(measures.seconds.values())}
             self.method_name = recipe.method
-            built = build(prepared, recipe)
-            state = self._initial_state(prepared, recipe, built)
-            self._report_plan(prepared, recipe, built, state)
+            self.run = self._started(Run.start(prepared, recipe))
+            self._report_plan()
             self.reporter.targets(prepared.targets)
             if prepared.textures.targets(prepared.target_values):   # final/<key>.target, for comparison
                 self.reporter.textures(None, prepared.textures.targets(prepared.target_values))
             views = ViewStream(sorted(prepared.targets), derive_seed(self.spec.seed, "batches"))
-            while not self._stopped(state) and state.next_iteration < self.spec.iterations:
+            while not self._stopped() and self.run.state.next_iteration < self.spec.iterations:
                 self._stop_if_asked()
-                self._remesh_if_due(state.next_iteration, prepared, recipe, built, state)
-                answer = self._iteration(state.next_iteration, prepared, recipe, built, views, state)
-                state.auto_held = state.auto_held + 1 if recipe.stop.auto_holds(answer) else 0
-                reason = recipe.stop.reason(answer, state.auto_held)
-                if reason is not None or state.next_iteration == self.spec.iterations:
-                    k = state.next_iteration - 1
-                    state.events.append(Decision("stop", state.next_iteration, reason or (
-                        f"the cap of {self.spec.iterations} iterations (the job's iterations)"), k))
-                    self._report_plan(prepared, recipe, built, state)
-                if state.next_iteration % self.spec.checkpoint_every == 0 or self._stopped(state):
-                    self.reporter.checkpoint(self._save(prepared, recipe, built, state), state.next_iteration)
-            if prepared.textures:
+                self._remesh_if_due(self.run.state.next_iteration)
+                self._iteration(self.run.state.next_iteration, views)
+                if self.run.state.next_iteration % self.spec.checkpoint_every == 0 or self._stopped():
+                    self.reporter.checkpoint(self.run.save(), self.run.state.next_iteration)
+            if self.run.prepared.textures:
+                textures = self.run.prepared.textures
                 undetermined = undetermined_texels(recipe, measures, dict(prepared.problem.parameters.textures))
-                self.reporter.textures(None, final_textures(prepared.textures, state, undetermined))
+                self.reporter.textures(None, final_textures(textures, self.run.state, undetermined))
             if isinstance(self.reporter, BackgroundReporter):
                 self.reporter.flush()  # success only once every report is written
-            return self._outcome(Outcome.SUCCEEDED, state, started)
+            return self._outcome(Outcome.SUCCEEDED, started)
         except RunAborted:
             raise
         except Stopped as stop:
-            log.info("run %s at iteration %s", stop.reason, state.next_iteration if state else 0)
+            log.info("run %s at iteration %s", stop.reason, self.run.state.next_iteration if self.run else 0)
             if stop.reason == Outcome.INTERRUPTED:
-                if state is not None:
-                    self.reporter.checkpoint(self._save(prepared, recipe, built, state), state.next_iteration)
-                return self._outcome(Outcome.INTERRUPTED, state, started)
-            return self._outcome(Outcome.CANCELED, state, started)
+                if self.run is not None:
+                    self.reporter.checkpoint(self.run.save(), self.run.state.next_iteration)
+                return self._outcome(Outcome.INTERRUPTED, started)
+            return self._outcome(Outcome.CANCELED, started)
         except InvalidJob as exc:
-            return self._outcome(Outcome.FAILED, state, started, error=str(exc), field=exc.field)
+            return self._outcome(Outcome.FAILED, started, error=str(exc), field=exc.field)
         except FloatingPointError as exc:
-            k = state.next_iteration if state else 0
-            return self._outcome(Outcome.FAILED, state, started, error=f"iteration {k}: {exc}")
+            k = self.run.state.next_iteration if self.run else 0
+            return self._outcome(Outcome.FAILED, started, error=f"iteration {k}: {exc}")
         except Exception as exc:  # recorded, never silent; the host decides what else to do
             log.exception("run failed")
-            return self._outcome(Outcome.FAILED, state, started, error=f"{type(exc).__name__}: {exc}")
+            return self._outcome(Outcome.FAILED, started, error=f"{type(exc).__name__}: {exc}")
 
     # -------------------------------------------------------------- phases
 
-    @staticmethod
-    def _stopped(state: RunState) -> bool:
+    def _preparing(self, what: str) -> None:
+        """A phase of the set-up begins: reported, and a cancel asked for is honoured here."""
+        self.reporter.progress("preparing", {"what": what})
+        self._stop_if_asked()
+
+    def _stopped(self) -> bool:
         """Whether the run has ended: a stop decision is its last event (:mod:`.stopping`)."""
-        return bool(state.events) and state.events[-1].what == "stop"
+        events = self.run.state.events if self.run is not None else []
+        return bool(events) and events[-1].what == "stop"
 
     def _stop_if_asked(self) -> None:
         reason = self.reporter.should_stop()
         if reason:
             raise Stopped(reason)
 
-    def _save(self, prepared: Prepared, recipe: Recipe, built: Built, state: RunState) -> bytes:
-        return save(self.spec, state, built, recipe.method, meshes=topology(prepared, state))
-
-    def _remesh_if_due(self, k: int, prepared: Prepared, recipe: Recipe, built: Built, state: RunState) -> None:
+    def _remesh_if_due(self, k: int) -> None:
         """Before iteration ``k``: the recipe's remesh, when one is due (:mod:`.remeshing`)."""
-        if recipe.remesh is None or k not in recipe.remesh.at or state.last_remesh >= k:
+        run = self.run
+        assert run is not None
+        if run.recipe.remesh is None or k not in run.recipe.remesh.at or run.state.last_remesh >= k:
             return
         self.reporter.progress("remeshing", {"iteration": k})
-        state.events.append(remesh_run(k, prepared, recipe, built, state))
-        self.listed = prepared.textures
-        self._report_plan(prepared, recipe, built, state)
+        self.run, event = remesh_run(k, run)
+        self.run.state.events.append(event)
+        self._report_plan()
 
-    def _initial_state(self, prepared: Prepared, recipe: Recipe, built: Built) -> RunState:
-        state = initial_state(prepared, recipe)
+    def _started(self, run: Run) -> Run:
+        """``run`` resumed from its checkpoint, or warm-started from another job's, or as is."""
         if self.resume is not None:
-            restore(self.spec, self.resume, state, built, remeshed=lambda meshes, first: adopt(
-                meshes, state.parameters, prepared, recipe, built, state, first=first))
-            self.listed = prepared.textures
-            self.reporter.progress("resumed", {"iteration": state.next_iteration,
-                                               "training_steps": built.trainer.steps if built.trainer else 0})
+            run = resumed(run, self.resume)
+            self.reporter.progress("resumed", {"iteration": run.state.next_iteration,
+                                               "training_steps": run.built.trainer.steps if run.built.trainer else 0})
         elif self.warm is not None:
             from services.solver.optimize.warm_start import apply_warm_start
 
-            state.parameters, self.warm_report = apply_warm_start(self.spec, self.warm, built.trainer,
-                                                                  prepared.problem, state.parameters,
-                                                                  prepared.lower, prepared.upper)
-        prepared.problem.parameters.assign(state.parameters)
-        return state
+            prepared = run.prepared
+            run.state.parameters, self.warm_report = apply_warm_start(self.spec, self.warm, run.built.trainer,
+                                                                      prepared.problem, run.state.parameters,
+                                                                      prepared.lower, prepared.upper)
+        run.prepared.problem.parameters.assign(run.state.parameters)
+        return run
 
-    def _iteration(self, k: int, prepared: Prepared, recipe: Recipe, built: Built, views: ViewStream,
-                   state: RunState) -> Estimate:
-        """Sec. 5's steps for iteration ``k`` at ``state.parameters`` (module docstring); returns
-        the answer after it."""
-        clock = Clock()
-        training = self._train(built.trainer, k)
+    def _iteration(self, k: int, views: ViewStream) -> None:
+        """Sec. 5's steps for iteration ``k`` at the run's parameters (module docstring), then
+        the stop rule on the answer after it."""
+        run, clock = self.run, Clock()
+        assert run is not None
+        training = self._train(k)
         clock.lap("training")
-        batch = views.batch(state.views_offset, state.batch.views)
-        estimate = estimate_batch(k, prepared, recipe, built, state, batch, fields_of(built.trainer))
+        batch = views.batch(run.state.views_offset, run.state.batch.views)
+        estimate = run.estimate(k, batch)
         clock.lap("gradient")
-        renders, gradients, silhouettes = self._images(k, prepared, recipe, built, state, estimate, clock)
-        lr = recipe.steps.learning_rate_at(k)
-        gradient = regularized(prepared.textures, self.spec.textures, estimate.dz_dp, state.parameters, k,
-                               self.spec.iterations, dict(recipe.texture_blocks))
-        updated = built.optimizer.step(state.parameters, gradient, prepared.lower, prepared.upper, lr=lr,
-                                       jacobians=estimate.jacobians)
-        refusal = prepared.problem.parameters.refuse(state.parameters, updated)
-        if refusal is not None:   # a shape's non-finite vertices or inverted triangles: never written
-            log.warning("iteration %d: step refused (%s)", k, refusal)
-            prepared.problem.count_refused(refusal)
-            built.optimizer.refused()
-            updated = np.array(state.parameters, np.float64)
-        answer = self._answer(k, prepared, recipe, built, state, estimate)
+        renders, gradients, silhouettes = self._images(k, estimate, clock)
+        step = run.step(k, estimate)
+        answer = run.answer(k, estimate)
         clock.lap("step")
-        grown = state.batch.grow(recipe.batch, len(prepared.targets), k) if built.optimizer.noise_dominated() else None
-        record = self._record(k, prepared, built, state, estimate, answer, updated, lr, training, clock,
-                              renders is not None)
-        state.images.spent(clock.seconds.get("images", 0.0), clock.elapsed, written=renders is not None)
+        grown = run.grown(k)
+        record = run.record(k, estimate, step, answer, training=training, seconds=clock.seconds,
+                            images=renders is not None)
+        run.state.images.spent(clock.seconds.get("images", 0.0), clock.elapsed, written=renders is not None)
         self.reporter.iteration(record, renders, gradients, silhouettes)
-        state.advance(prepared, updated, batch.offset)
+        run.state.advance(run.prepared, step.updated, batch.offset)
         if grown is not None:
-            state.events.append(grown)
-            self._report_plan(prepared, recipe, built, state)
-        return answer
+            run.state.events.append(grown)
+            self._report_plan()
+        self._stop_if_done(answer)
 
-    def _train(self, trainer: FieldTrainer | None, k: int) -> dict:
+    def _stop_if_done(self, answer: Estimate) -> None:
+        """The recipe's stop rule on the answer after an iteration, or the cap of iterations: the
+        ``stop`` event (:mod:`.stopping`)."""
+        run = self.run
+        assert run is not None
+        state, stop = run.state, run.recipe.stop
+        state.auto_held = state.auto_held + 1 if stop.auto_holds(answer) else 0
+        reason = stop.reason(answer, state.auto_held)
+        if reason is not None or state.next_iteration == self.spec.iterations:
+            state.events.append(Decision("stop", state.next_iteration, reason or (
+                f"the cap of {self.spec.iterations} iterations (the job's iterations)"), state.next_iteration - 1))
+            self._report_plan()
+
+    def _train(self, k: int) -> dict:
+        trainer = self.run.built.trainer if self.run is not None else None
         if trainer is None:
             return {}
         adaptive = self.spec.training.adaptive_steps
@@ -301,15 +293,18 @@ class InverseRenderingRun:
         return {"training_steps": len(stats), "residual_radiance": float(np.mean(radiance)) if radiance else None,
                 "residual_differential": float(np.mean(differential)) if differential else None}
 
-    def _images(self, k: int, prepared: Prepared, recipe: Recipe, built: Built, state: RunState,
-                estimate: BatchEstimate, clock: Clock) -> tuple[dict | None, dict | None, dict | None]:
+    def _images(self, k: int, estimate: BatchEstimate,
+                clock: Clock) -> tuple[dict | None, dict | None, dict | None]:
         """Every view's render and gradient images at the iteration's parameters, when due
         (:class:`~.images.ImageSchedule`), and a geometry job's silhouettes; a texture job's
         textures and their gradient."""
+        run = self.run
+        assert run is not None
+        prepared, state = run.prepared, run.state
         if not state.images.due(k, self.spec, asked=self.reporter.images_requested(), elapsed=clock.elapsed):
             return None, None, None
-        renders, gradients = render_views(prepared, built.method, fields_of(built.trainer), estimate.candidates, k,
-                                          state.batch.spp, state.batch.gradient_spp, recipe.depth)
+        renders, gradients = render_views(prepared, run.built.method, run.fields, estimate.candidates, k,
+                                          state.batch.spp, state.batch.gradient_spp, run.recipe.depth)
         shapes = prepared.problem.parameters.shape_reports(state.parameters, final=True)
         if shapes:   # each optimized mesh as a PLY snapshot
             self.reporter.meshes(k, {shape: base64.b64decode(report["ply"]) for shape, report in shapes.items()})
@@ -322,58 +317,23 @@ class InverseRenderingRun:
         clock.lap("images")
         return renders, gradients, silhouettes
 
-    @staticmethod
-    def _answer(k: int, prepared: Prepared, recipe: Recipe, built: Built, state: RunState,
-                estimate: BatchEstimate) -> Estimate:
-        """The answer after this iteration: its gradient, weighted by its samples (views x samples
-        per pixel), joins the estimate, and each view's residual the floor (:mod:`.answer`)."""
-        curvature = built.optimizer.curvature
-        if curvature is not None:
-            block = block_of(recipe)
-            for view, candidate in estimate.candidates.items():
-                jacobian = estimate.jacobians.get(view)
-                loss = state.loss_of(prepared, view, recipe.blur_at(k))   # the residual of its images, as J
-                state.answer.residual(k, view, block_residual(loss.image(candidate), loss.target, block),
-                                      None if jacobian is None else jacobian[0], state.batch.spp)
-        weight = len(estimate.candidates) * state.batch.gradient_spp
-        state.answer.observe(state.parameters, estimate.dz_dp, weight, None if curvature is None else curvature.hessian)
-        return state.answer.estimate()
-
-    def _record(self, k: int, prepared: Prepared, built: Built, state: RunState, estimate: BatchEstimate,
-                answer: Estimate, updated: np.ndarray, lr: float, training: dict, clock: Clock,
-                images: bool) -> IterationRecord:
-        target, listed = prepared.target_values, prepared.textures
-        return IterationRecord(
-            iteration=k, loss=estimate.loss,
-            **record_fields(prepared.textures, state.parameters, updated, estimate.dz_dp, target),
-            learning_rate=lr, images=images, sanitized=dict(prepared.problem.sanitized),
-            refused=dict(prepared.problem.refused),
-            views=list(estimate.candidates),
-            optimizer=built.optimizer.describe() or None,
-            seconds={phase: clock.seconds.get(phase, 0.0) for phase in ("training", "gradient", "step", "images")},
-            parameter_error=listed.error(state.parameters, target),
-            estimate=listed.scalars(answer.values),
-            standard_error=None if answer.standard_error is None else listed.scalars(answer.standard_error),
-            estimate_window=[answer.start, answer.end],
-            estimate_error=listed.error(answer.values, target),
-            shapes=prepared.problem.parameters.shape_reports(state.parameters) or None,
-            **training)
-
     # -------------------------------------------------------------- reports
 
-    def _report_plan(self, prepared: Prepared, recipe: Recipe, built: Built, state: RunState) -> None:
-        self.reporter.plan(describe(prepared, recipe, built, state, seconds=self.seconds,
-                                    warm_start=self.warm_report))
+    def _report_plan(self) -> None:
+        assert self.run is not None
+        self.reporter.plan(describe(self.run, seconds=self.seconds, warm_start=self.warm_report))
 
-    def _outcome(self, status: Outcome, state: RunState | None, started: float, error: str | None = None,
+    def _outcome(self, status: Outcome, started: float, error: str | None = None,
                  field: str | None = None) -> RunOutcome:
         """How the run ended, with its answer: the estimate and its standard errors, and the last
         iterate under its own name."""
-        outcome = RunOutcome(status=status, iterations=state.next_iteration if state is not None else 0,
+        run = self.run
+        outcome = RunOutcome(status=status, iterations=run.state.next_iteration if run is not None else 0,
                              seconds=time.perf_counter() - started, error=error, field=field)
-        if state is None:
+        if run is None:
             return outcome
-        listed = self.listed.scalars if self.listed is not None else (lambda v: np.asarray(v).tolist())
+        state, listed = run.state, run.prepared.textures.scalars
+        parameter_set = run.prepared.problem.parameters
         outcome.last_iterate = outcome.parameters = listed(state.parameters)
         if state.next_iteration > 0:
             answer = state.answer.estimate()
@@ -382,10 +342,10 @@ class InverseRenderingRun:
             outcome.estimate = {"kind": answer.kind, "window": [answer.start, answer.end],
                                 "run_error": None if answer.run_error is None else listed(answer.run_error),
                                 "floor_error": None if answer.floor_error is None else listed(answer.floor_error)}
-        if self._stopped(state):
+        if self._stopped():
             outcome.stopped = asdict(state.events[-1])
-        if self.parameter_set is not None and self.parameter_set.has_geometry:
+        if parameter_set.has_geometry:
             answer_values = state.answer.estimate().values if state.next_iteration > 0 else state.parameters
-            outcome.poses = self.parameter_set.pose_reports(answer_values) or None
-            outcome.meshes = self.parameter_set.shape_reports(answer_values, final=True) or None
+            outcome.poses = parameter_set.pose_reports(answer_values) or None
+            outcome.meshes = parameter_set.shape_reports(answer_values, final=True) or None
         return outcome

@@ -20,57 +20,59 @@ differential coordinates on the new triangles: the shape's span of ``target_valu
 
 The event (``remesh``, appended to ``plan.json``'s events) gives each mesh's vertices and
 triangles before and after and the edge length. A checkpoint taken after a remesh holds each
-remeshed mesh's triangles (:func:`topology`), and a resumed run rebuilds them before loading its
-state (:func:`adopt`).
+remeshed mesh's triangles (:meth:`.run.Run.topology`), and a resumed run rebuilds them before
+loading its state (:func:`resumed`).
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 
 import numpy as np
 
 from services.solver.optimize.answer import answer_for
-from services.solver.optimize.build import Built, build_optimizer
-from services.solver.optimize.recipe import Decision, Recipe
+from services.solver.optimize.build import build_optimizer
+from services.solver.optimize.recipe import Decision
 from services.solver.optimize.resolve import derivative_layout
-from services.solver.optimize.setup import Prepared
-from services.solver.optimize.state import RunState
-from services.solver.optimize.textures import TextureReport
+from services.solver.optimize.run import Run
+from services.solver.optimize.state import load, restore
 from services.solver.scene.remesh import remesh
 from services.solver.scene.shape import VERTICES, shape_of
 
 log = logging.getLogger(__name__)
 
 
-def remesh_run(k: int, prepared: Prepared, recipe: Recipe, built: Built, state: RunState) -> Decision:
-    """Remesh every optimized mesh before iteration ``k`` (module docstring); returns the event."""
-    assert recipe.remesh is not None   # the loop asks only at the recipe's iterations
+def remesh_run(k: int, run: Run) -> tuple[Run, Decision]:
+    """Remesh every optimized mesh of ``run`` before iteration ``k`` (module docstring); returns
+    the run that goes on and the event."""
+    assert run.recipe.remesh is not None   # the loop asks only at the recipe's iterations
     started = time.perf_counter()
-    parameters = prepared.problem.parameters
-    estimate = state.answer.estimate().values
+    parameters, remeshing = run.prepared.problem.parameters, run.recipe.remesh
+    estimate = run.state.answer.estimate().values
     spans = parameters.offsets()
     meshes: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     changes = []
     for shape, mesh in parameters.shapes.items():
         vertices = mesh.vertices(estimate[slice(*spans[f"{shape}.{VERTICES}"])])
-        new = remesh(vertices, mesh.faces, recipe.remesh.edge, recipe.remesh.passes)
+        new = remesh(vertices, mesh.faces, remeshing.edge, remeshing.passes)
         meshes[shape] = (new.vertices, new.faces)
         changes.append(f"{shape}: {len(vertices)} vertices and {len(mesh.faces)} triangles -> {len(new.vertices)} and "
                        f"{len(new.faces)} (edges of {new.edge:.4g})")
-    adopt(meshes, estimate, prepared, recipe, built, state, first=k)
+    after = adopt(meshes, estimate, run, first=k)
     log.info("iteration %d: remeshed %s", k, "; ".join(changes))
-    return Decision("remesh", ", ".join(f"{shape} {len(v)}" for shape, (v, _) in meshes.items()),
-                    "; ".join(changes) + f", in {time.perf_counter() - started:.2f} s: the run goes on from its "
-                    f"estimate, with a new optimizer, learning-rate stage and answer", k)
+    return after, Decision("remesh", ", ".join(f"{shape} {len(v)}" for shape, (v, _) in meshes.items()),
+                           "; ".join(changes) + f", in {time.perf_counter() - started:.2f} s: the run goes on from "
+                           f"its estimate, with a new optimizer, learning-rate stage and answer", k)
 
 
-def adopt(meshes: dict[str, tuple[np.ndarray, np.ndarray]], values: np.ndarray, prepared: Prepared, recipe: Recipe,
-          built: Built, state: RunState, *, first: int) -> None:
-    """Make ``meshes`` (shape id -> vertices ``(N', 3)``, faces ``(F', 3)``) the optimized meshes
-    and continue from ``values`` ``(P,)`` (the old layout's) at iteration ``first``: every array
-    sized by ``p`` is rebuilt for the new layout (module docstring)."""
+def adopt(meshes: dict[str, tuple[np.ndarray, np.ndarray]], values: np.ndarray, run: Run, *, first: int) -> Run:
+    """The run that makes ``meshes`` (shape id -> vertices ``(N', 3)``, faces ``(F', 3)``) the
+    optimized meshes and continues from ``values`` ``(P,)`` (``run``'s layout) at iteration
+    ``first``: every array sized by ``p`` is new for the new layout (module docstring). ``run``
+    keeps its arrays; the scene's meshes are replaced in place (the one thing both share)."""
+    prepared, recipe = run.prepared, run.recipe
     parameters = prepared.problem.parameters
     old = parameters.offsets()
     before = (prepared.init, prepared.lower, prepared.upper, prepared.target_values, values)
@@ -92,23 +94,25 @@ def adopt(meshes: dict[str, tuple[np.ndarray, np.ndarray]], values: np.ndarray, 
             upper.append(before[2][a:b])
             target.append(before[3][a:b] if before[3] is not None else np.zeros(b - a))
             start.append(before[4][a:b])
-    prepared.init, prepared.lower, prepared.upper = np.concatenate(init), np.concatenate(lower), np.concatenate(upper)
-    if prepared.target_values is not None:
-        prepared.target_values = np.concatenate(target)
-    prepared.textures = TextureReport(parameters)
     prepared.problem.layout = derivative_layout(parameters, None, prepared.spec.effects.merge_channels)
-    built.optimizer = build_optimizer(prepared, recipe)
-    state.answer = answer_for(recipe.steps.second_order, prepared.lower, prepared.upper, len(prepared.targets),
-                              first=first)
-    state.parameters = np.clip(np.concatenate(start), prepared.lower, prepared.upper)
+    remeshed = replace(prepared, init=np.concatenate(init), lower=np.concatenate(lower),
+                       upper=np.concatenate(upper),
+                       target_values=None if prepared.target_values is None else np.concatenate(target))
+    built = replace(run.built, optimizer=build_optimizer(remeshed, recipe))
+    state = replace(run.state, answer=answer_for(recipe.steps.second_order, remeshed.lower, remeshed.upper,
+                                                 len(remeshed.targets), first=first),
+                    parameters=np.clip(np.concatenate(start), remeshed.lower, remeshed.upper))
     parameters.assign(state.parameters)
+    return replace(run, prepared=remeshed, built=built, state=state)
 
 
-def topology(prepared: Prepared, state: RunState) -> dict[str, dict[str, np.ndarray]] | None:
-    """What a checkpoint keeps of the remeshed meshes: each one's vertices as remeshed and its
-    faces, by shape id; None when the run has not remeshed."""
-    if not any(event.what == "remesh" for event in state.events):
-        return None
-    return {shape: {"vertices": mesh.v0, "faces": mesh.faces}
-            for shape, mesh in prepared.problem.parameters.shapes.items()}
-
+def resumed(run: Run, blob: bytes) -> Run:
+    """``run`` continued from the checkpoint ``blob`` (of its job): a checkpoint taken after a
+    remesh first rebuilds its meshes (:func:`adopt`), then the state takes its values."""
+    saved = load(run.prepared.spec, blob)
+    if saved.get("meshes"):
+        meshes = {shape: (np.asarray(mesh["vertices"], np.float64), np.asarray(mesh["faces"], np.int64))
+                  for shape, mesh in saved["meshes"].items()}
+        run = adopt(meshes, run.state.parameters, run, first=saved["remeshed_at"])
+    restore(saved, run.state, run.built)
+    return run

@@ -1,5 +1,5 @@
 """What a run carries from one iteration to the next (:class:`RunState`), how a checkpoint holds
-it, and what ``plan.json`` says of the run (:func:`describe`).
+it (``plan.json``, what is said of the run, is :mod:`.plan`'s).
 
 A checkpoint (:mod:`.checkpoint`) holds the next iteration, the parameters, the optimizer's state
 (Adam's moments; Levenberg-Marquardt's trust radius and its curvature with each view's remembered
@@ -9,13 +9,11 @@ run's events, the fields' trainer and the triangles of a remeshed mesh.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
 from schemas.job import JobSpec
-from services.solver.backend import describe_device
 from services.solver.estimators.losses import BlurredLoss, ImageLoss
 from services.solver.optimize import checkpoint
 from services.solver.optimize.answer import Answer, answer_for
@@ -89,20 +87,19 @@ def save(spec: JobSpec, state: RunState, built: Built, method: str, meshes: dict
                             trainer=None if trainer is None else trainer.state_dict(), method=method, meshes=meshes)
 
 
-def restore(spec: JobSpec, blob: bytes, state: RunState, built: Built,
-            remeshed: Callable[[dict[str, tuple[np.ndarray, np.ndarray]], int], None] | None = None) -> None:
-    """Continue from the checkpoint ``blob``: ``state`` and the built objects take its values.
-    A checkpoint of an older version keeps the curvature beside the optimizer's state. A
-    checkpoint taken after a remesh gives its meshes (shape id -> vertices, faces) and the
-    remesh's iteration to ``remeshed`` first, which rebuilds what is sized by the parameters."""
+def load(spec: JobSpec, blob: bytes) -> dict:
+    """The checkpoint ``blob`` of ``spec``'s job as a dict (:mod:`.checkpoint`), with
+    ``remeshed_at``: the iteration of its last remesh, 0 when none."""
     saved = checkpoint.loads(blob, spec)
+    saved["remeshed_at"] = remesh_iteration([Decision(**e) for e in saved.get("events") or []])
+    return saved
+
+
+def restore(saved: dict, state: RunState, built: Built) -> None:
+    """Continue from the checkpoint ``saved`` (:func:`load`): ``state`` and the built objects, of
+    the checkpoint's layout (a remeshed one's rebuilt first, :meth:`.run.Run.restored`), take its
+    values. A checkpoint of an older version keeps the curvature beside the optimizer's state."""
     state.events = [Decision(**e) for e in saved.get("events") or []]
-    if saved.get("meshes"):
-        if remeshed is None:
-            raise ValueError("the checkpoint holds remeshed meshes and nothing here can rebuild them")
-        first = state.last_remesh
-        remeshed({shape: (np.asarray(mesh["vertices"], np.float64), np.asarray(mesh["faces"], np.int64))
-                  for shape, mesh in saved["meshes"].items()}, first)
     state.next_iteration = saved["next_iteration"]
     state.parameters = np.asarray(saved["parameters"], np.float64)
     state.views_offset = int(saved["views_offset"])
@@ -116,49 +113,3 @@ def restore(spec: JobSpec, blob: bytes, state: RunState, built: Built,
     built.optimizer.load_state_dict(optimizer)
     if built.trainer is not None and saved["trainer"] is not None:
         built.trainer.load_state_dict(saved["trainer"])
-
-
-def describe(prepared: Prepared, recipe: Recipe, built: Built, state: RunState, *, seconds: dict,
-             warm_start: dict | None) -> dict:
-    """``plan.json``: what the run simulates and why (the recipe with its decisions), the scalars
-    with their bounds and targets, and the events of the run so far."""
-    problem, trainer, textures, spec = prepared.problem, built.trainer, prepared.textures, prepared.spec
-    width, height = problem.scene.resolution()
-    depths: dict[str, object] = {"render": recipe.depth.describe()}
-    if prepared.target_depth is not None:
-        depths["target"] = prepared.target_depth.describe()
-    if recipe.warnings:
-        depths["warnings"] = list(recipe.warnings)
-    return {
-        "method": recipe.method,
-        "device": describe_device(),
-        "recipe": recipe.to_json(),
-        "events": [asdict(e) for e in state.events],
-        "realised_by": type(built.method).__name__,
-        "fields": {"radiance": trainer is not None and trainer.radiance is not None,
-                   "differential": trainer is not None and (trainer.differential is not None
-                                                            or trainer.head is not None)},
-        "scalars": textures.labels,
-        "keys": problem.parameters.keys,
-        "init": textures.scalars(prepared.init),
-        "lower": _bound(textures.scalars(prepared.lower)),     # None: unbounded (a pose's scalars)
-        "upper": _bound(textures.scalars(prepared.upper)),
-        "target_values": None if prepared.target_values is None else textures.scalars(prepared.target_values),
-        "textures": textures.plan(prepared.init, prepared.lower, prepared.upper, prepared.target_values),
-        "shapes": {shape: {**report, "largesteps_lambda": prepared.spec.geometry.largesteps_lambda}   # at init
-                   for shape, report in prepared.problem.parameters.shape_reports(prepared.init).items()} or None,
-        "sensors": sorted(prepared.targets),
-        "resolution": [width, height],
-        "depths": depths,
-        "prepared_seconds": seconds,
-        "render": spec.render.model_dump(mode="json"),
-        "training": spec.training.model_dump(mode="json"),
-        "effects": recipe.effects.to_json() if recipe.effects is not None else None,
-        "iterations": spec.iterations,
-        "warm_start": warm_start,
-    }
-
-
-def _bound(values: list[float]) -> list[float | None]:
-    """A bound per scalar for JSON: None where there is none (infinite)."""
-    return [v if np.isfinite(v) else None for v in values]
