@@ -1,6 +1,7 @@
 """A texture the images cannot pin down: the recipe's choice of resolution against the alternatives.
 
-``python -m bench.investigations.texture_footprint [--iterations 200] [--seeds 0,1,2] [--variants auto,full,laplacian,coarse]``
+``python -m bench.investigations.texture_footprint [--iterations 200] [--seeds 0,1,2]
+[--variants auto,full,laplacian,coarse]``
 
 The user's job of the issue: the textured box's 64 x 64 back-wall albedo (12,288 scalars) seen by
 its 4 views at 64 x 64 pixels (about 1,300 wall pixels each: fewer pixels than texels), the
@@ -146,8 +147,8 @@ def main(argv: list[str] | None = None) -> None:
         r.pop("final")
         r.pop("se")
     args.out.write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1))
-    write_markdown(args.out, "bench.investigations.texture_footprint", argv, text + f"\n\n![truth, answer, error and standard error]"
-                                                                     f"({args.out.stem}.png)")
+    picture = f"\n\n![truth, answer, error and standard error]({args.out.stem}.png)"
+    write_markdown(args.out, "bench.investigations.texture_footprint", argv, text + picture)
     log.info("\n%s", text)
 
 

@@ -53,9 +53,9 @@ def main() -> None:
                 status, _, _ = api.request("POST", f"/v1/jobs/{job['id']}/views", body, timeout=600)
                 done.set()
                 sampler.join()
-                log.info("%s", json.dumps({"view": i, "inline": inline, "status": status, "rss_before_mib": round(before, 1),
-                                  "peak_rise_mib": round(peak[0] - before, 1),
-                                  "rss_after_mib": round(rss_mib(proc.pid), 1)})))
+                row = {"view": i, "inline": inline, "status": status, "rss_before_mib": round(before, 1),
+                       "peak_rise_mib": round(peak[0] - before, 1), "rss_after_mib": round(rss_mib(proc.pid), 1)}
+                log.info("%s", json.dumps(row))
         finally:
             proc.kill()
 
