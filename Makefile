@@ -52,7 +52,8 @@ docs: install
 	$(BIN)/python -m schemas.reference
 	$(BIN)/mkdocs build --strict
 
-# the benchmark pages of the docs, from bench/results (after a benchmark wrote new results)
+# the benchmark pages of the docs, from bench/results (after a benchmark wrote new results); the index
+# opens with bench/overview.md, written by hand
 bench-docs: install
 	$(BIN)/python -m bench.docs
 

@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> None:
         sections += ["## Inverse rendering of the hidden object, error against time", "", "![e2e](e2e.png)", "",
                      report.e2e_table(results["e2e"]), ""]
     (out / "report.md").write_text("\n".join(sections))
-    print("\n".join(sections))
+    logging.getLogger("bench").info("\n%s", "\n".join(sections))
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ bench/results/core_accuracy-<scene>.md.
 from __future__ import annotations
 
 import argparse
+import logging
 import platform
 import time
 from pathlib import Path
@@ -36,6 +37,7 @@ def main() -> None:
     parser.add_argument("--query-spp", type=int, default=16)
     parser.add_argument("--seed", type=int, default=0, help="seed of the fields' initialisation and training samples")
     args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
 
     from schemas.solver import TrainingConfig
     from services.solver.backend import use_mitsuba, use_torch
@@ -92,7 +94,7 @@ def main() -> None:
         off_err = relative(images, reference, off) if off.any() and np.linalg.norm(reference[:, off]) > 0 else float("nan")
         lines.append(f"| {name} | {relative(images, reference):.4f} | {off_err:.4f} | {train_s:.0f} | {query:.2f} |")
     text = "\n".join(lines) + "\n"
-    print(text)
+    logging.getLogger("bench.core_accuracy").info("\n%s", text)
     out = Path(__file__).parent / "results" / f"core_accuracy-{args.scene}{f'-seed{args.seed}' if args.seed else ''}.md"
     out.write_text(text)
 

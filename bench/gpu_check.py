@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> None:
     log.info("device: %s", describe_device())
     result = run(args.out, cpu=args.cpu, iterations=args.iterations, budget=args.budget, deadline=args.deadline,
                  tests_log=args.tests_log)
-    print(table(result))
+    log.info("\n%s", table(result))
 
 
 if __name__ == "__main__":

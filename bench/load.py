@@ -320,7 +320,7 @@ def main(argv: list[str] | None = None) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(report, indent=2) + "\n")
     out.with_suffix(".md").write_text(markdown(report))
-    print(markdown(report))
+    log.info("\n%s", markdown(report))
 
 
 if __name__ == "__main__":

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import statistics
 import subprocess
 import sys
@@ -67,7 +68,7 @@ class _Discard:
             def get(self, key):
                 return self.objects.get(key)
 
-            def put(self, key, data):
+            def put(self, key, data, *, durable=True):
                 if key.endswith("record.json") and "/iterations/" not in key:
                     self.objects[key] = data
 
@@ -97,7 +98,7 @@ class _Discard:
             def usage_bytes(self):
                 return 0
 
-            def append_event(self, prefix, event):
+            def append_event(self, prefix, event, *, durable=True):
                 self.seq[prefix] += 1
                 return {"seq": self.seq[prefix], **event}
 
@@ -139,16 +140,16 @@ def _count_written(store: Any) -> Counter:
     written: Counter = Counter()
     put, put_if, append = store.put, store.put_if, store.append_event
 
-    def counting_put(key, data):
+    def counting_put(key, data, *, durable=True):
         written["bytes"] += len(data)
-        return put(key, data)
+        return put(key, data, durable=durable)
 
     def counting_put_if(key, data, version):
         written["bytes"] += len(data)
         return put_if(key, data, version)
 
-    def counting_append(prefix, event):
-        stored = append(prefix, event)
+    def counting_append(prefix, event, *, durable=True):
+        stored = append(prefix, event, durable=durable)
         if isinstance(store, FolderStore):       # the S3 store's events are counted as its put_if
             written["bytes"] += len(dumps(stored, indent=None)) + 1
         return stored
@@ -210,6 +211,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--bucket", default="bench")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "store_overhead.json")
     args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
 
     from services.store.local import FolderStore
     from services.store.s3 import S3Store
@@ -243,19 +245,20 @@ def main(argv: list[str] | None = None) -> None:
             proc.wait(timeout=10)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2) + "\n")
-    print(f"{args.iterations} iterations, {args.resolution[0]}x{args.resolution[1]}, P={args.scalars}, checkpoint "
-          f"{args.checkpoint_bytes / 2**20:.1f} MiB every {args.checkpoint_every}")
-    print("| store | median s/iter | mean s/iter (with checkpoints) | checkpoint s | store share of mean | "
-          "bytes written/iter | bytes kept/iter | requests/iter |")
-    print("|---|---|---|---|---|---|---|---|")
+    lines = [f"{args.iterations} iterations, {args.resolution[0]}x{args.resolution[1]}, P={args.scalars}, checkpoint "
+             f"{args.checkpoint_bytes / 2**20:.1f} MiB every {args.checkpoint_every}",
+             "| store | median s/iter | mean s/iter (with checkpoints) | checkpoint s | store share of mean | "
+             "bytes written/iter | bytes kept/iter | requests/iter |",
+             "|---|---|---|---|---|---|---|---|"]
     base = results["discard"]["mean_s"]
     for name in ("discard", "folder", "s3"):
         r = results[name]
         cp = f"{r['checkpoint_s']:.3f}" if r["checkpoint_s"] is not None else "-"
         req = f"{r['requests_per_iteration']:.1f}" if r["requests_per_iteration"] is not None else "-"
-        print(f"| {name} | {r['median_s']:.4f} | {r['mean_s']:.4f} | {cp} | {r['mean_s'] - base:+.4f} | "
-              f"{r['written_bytes_per_iteration']:,.0f} | {r['stored_bytes_per_iteration']:,.0f} | {req} |")
-    print("requests by kind (s3, whole run):", results["s3"]["requests_by_kind"])
+        lines.append(f"| {name} | {r['median_s']:.4f} | {r['mean_s']:.4f} | {cp} | {r['mean_s'] - base:+.4f} | "
+                     f"{r['written_bytes_per_iteration']:,.0f} | {r['stored_bytes_per_iteration']:,.0f} | {req} |")
+    lines.append(f"requests by kind (s3, whole run): {results['s3']['requests_by_kind']}")
+    logging.getLogger("bench.store_overhead").info("\n%s", "\n".join(lines))
 
 
 if __name__ == "__main__":

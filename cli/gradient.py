@@ -14,7 +14,7 @@ log = logging.getLogger(__name__)
 
 #: Samples per pixel of the images ``ndrf gradient`` writes: one image a user looks at, not a step of
 #: the inverse loop, whose 1-spp ``render.gradient_spp`` serves an optimizer that averages noise over
-#: iterations. ``python -m bench.gradient_spp`` (hidden-object, ``ndrf-rhs``, 250 warm-up steps,
+#: iterations. ``python -m bench.investigations.gradient_spp`` (hidden-object, ``ndrf-rhs``, 250 warm-up steps,
 #: against ``prb`` at 2 x 2048 spp, whose own noise is 0.09): the image's relative error is 2.82 at
 #: 1 spp, 0.66 at 16, 0.35 at 64, 0.19 at 256, 0.13 at 1024, falling as 1/sqrt(spp) (noise, not the
 #: field's bias, dominates throughout). So the cost decides: the query took 12 s at 64 spp beside
@@ -30,7 +30,7 @@ GRADIENT_SPP = 64
               help="Samples per pixel of the gradient images, whatever the job's render.gradient_spp (1 by "
                    "default: it serves an optimizer that averages noise over iterations). On hidden-object the "
                    "ndrf-rhs image's error relative to prb's is 2.8 at 1 spp and 0.35 at 64, for 2 to 4% of the "
-                   "command's time (python -m bench.gradient_spp, two runs).")
+                   "command's time (python -m bench.investigations.gradient_spp, two runs).")
 @click.option("--train-steps", type=click.IntRange(0, 10**6), default=None,
               help="Training steps of the fields before the query (default: the job's training.warmup_steps, "
                    "what the inverse loop's first step queries).")

@@ -56,7 +56,7 @@ _KEPT = MS_NOSUID | MS_NODEV | MS_NOEXEC | 16 | 64 | 1024 | 2048 | 4096
 _PSEUDO = ("/proc", "/sys", "/dev")
 #: ``/proc`` itself stays writable: NVIDIA's user-mode driver writes there as CUDA starts, and under
 #: a read-only ``/proc`` neither torch nor Dr.Jit find the GPU (measured on a lent H100, issue 35:
-#: bench/gpu_sandbox_bisect.py). What a root child could change through it is made read-only
+#: bench/investigations/README.md). What a root child could change through it is made read-only
 #: instead, as container runtimes do: the kernel's settings, the SysRq trigger, IRQ and bus tuning.
 PROC_READ_ONLY = ("/proc/sys", "/proc/sysrq-trigger", "/proc/irq", "/proc/bus", "/proc/fs")
 PR_SET_NO_NEW_PRIVS, PR_CAPBSET_DROP, PR_CAP_AMBIENT, PR_CAP_AMBIENT_CLEAR_ALL = 38, 24, 47, 4

@@ -1,6 +1,6 @@
 """The S3 store: ``NDRF_STORE=s3://bucket/prefix`` on any S3-compatible endpoint, so that workers
 on several machines share no disk. Client: obstore (Rust ``object_store``: one dependency,
-SigV4, retries, conditional puts, streaming; chosen by ``bench/store_clients.py``).
+SigV4, retries, conditional puts, streaming; chosen by ``bench/investigations/store_clients.py``).
 
 What the folder store does with rename, ``flock`` and ``O_APPEND``, here:
 

@@ -27,12 +27,12 @@ samples per pixel). The rules and what they rest on (``bench/results/``):
   steps where at least 1 - :data:`CLOSED` of the light reflected leaves the scene** (the
   closure, :func:`services.solver.scene.closure.closure`); otherwise it starts at one and grows
   by 3/2: an image's response to an albedo curves like ``a / (1 - a c)``, and Gauss-Newton's
-  linear model holds over long steps only where ``c`` is small (``python -m bench.trust_growth``).
+  linear model holds over long steps only where ``c`` is small (``python -m bench.investigations.trust_growth``).
 * **One view per iteration at 1 spp**, the batch doubled by the run itself when the steps keep
   reversing (noise-dominated): views while there are more, then samples per pixel; kept as it is
   under Adam, whose moments average the noise.
 * **8 samples per pixel from the start where no optimized scalar is seen directly**
-  (``python -m bench.first_spp``): the gradient of a scalar seen only through interreflection is
+  (``python -m bench.investigations.first_spp``): the gradient of a scalar seen only through interreflection is
   the noisy tail of longer paths.
 * **A texture** (``bench/results/textures*.md``): Adam (a Gauss-Newton step would need a P x P
   curvature), every view at :data:`TEXTURE_SPP` spp per iteration.
@@ -338,7 +338,7 @@ def _texture_blocks(spec: JobSpec, parameters: Parameters, measures: Measures, d
         decide(f"resolution {key}", f"{-(-shape[0] // block)}x{-(-shape[1] // block)}",
                f"{seen}: the images cannot pin down its texels (fewer than {PIXELS_PER_TEXEL} pixels per texel), so "
                f"blocks of {block}x{block} texels move together, each seen by {pixels_per_texel(counts, block):.2g} "
-               f"pixels (median; textures.resolution 'full' keeps every texel free; bench.texture_footprint)")
+               f"pixels (median; textures.resolution 'full' keeps every texel free; bench.investigations.texture_footprint)")
         out.append((key, block))
     return tuple(out)
 
@@ -456,7 +456,8 @@ def _batch(spec: JobSpec, method: str, optimizer: str, parameters: Parameters, e
         spp = gradient_spp = INDIRECT_SPP
         decide("spp", INDIRECT_SPP, f"no optimized scalar is seen directly: its gradient comes from paths of two "
                                     f"bounces or more, whose noise at 1 sample per pixel decides the steps' direction; "
-                                    f"{INDIRECT_SPP} samples per pixel from the first iteration (bench.first_spp)")
+                                    f"{INDIRECT_SPP} samples per pixel from the first iteration "
+                                    f"(bench.investigations.first_spp)")
     elif render.spp == 1 and render.gradient_spp == 1:
         decide("spp", 1, "1 sample per pixel: the fastest to a given error in every scene measured; the optimizer "
                          "averages the noise across iterations")

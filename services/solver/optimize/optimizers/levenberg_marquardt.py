@@ -53,7 +53,7 @@ if TYPE_CHECKING:
 #: The default first radius and the largest, in units of ``lr_0``, and the default growth on agreeing
 #: capped steps. The default first radius is Adam's first step. A faster start (4x, or growth 2)
 #: reaches the open room's answer a step or two sooner and overshoots in the bright closed room
-#: (``python -m bench.trust_growth``), which is why both are the recipe's.
+#: (``python -m bench.investigations.trust_growth``), which is why both are the recipe's.
 INITIAL, GROW, RADIUS_CAP = 1.0, 1.5, 20.0
 #: Cosine between consecutive steps above which they agree.
 AGREE = 0.5

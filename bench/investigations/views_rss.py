@@ -3,18 +3,21 @@ to 1595 MiB when they came back to it): a real ``ndrf serve`` (embedded), a one-
 job, then three 256x256 views at 16 spp with ``prb_spp`` 16 (the third ``inline``), the API's
 VmRSS sampled every 10 ms during each.
 
-    python -m bench.views_rss
+    python -m bench.investigations.views_rss
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import tempfile
 import threading
 import time
 from pathlib import Path
 
 from harness.cluster import small_job, start_api
+
+log = logging.getLogger("bench.investigations.views_rss")
 
 
 def rss_mib(pid: int) -> float:
@@ -25,6 +28,7 @@ def rss_mib(pid: int) -> float:
 
 
 def main() -> None:
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         proc, api = start_api(folder, {"NDRF_STORE": str(folder / "store"), "NDRF_API_KEYS": "alice"})
@@ -49,9 +53,9 @@ def main() -> None:
                 status, _, _ = api.request("POST", f"/v1/jobs/{job['id']}/views", body, timeout=600)
                 done.set()
                 sampler.join()
-                print(json.dumps({"view": i, "inline": inline, "status": status, "rss_before_mib": round(before, 1),
-                                  "peak_rise_mib": round(peak[0] - before, 1),
-                                  "rss_after_mib": round(rss_mib(proc.pid), 1)}))
+                row = {"view": i, "inline": inline, "status": status, "rss_before_mib": round(before, 1),
+                       "peak_rise_mib": round(peak[0] - before, 1), "rss_after_mib": round(rss_mib(proc.pid), 1)}
+                log.info("%s", json.dumps(row))
         finally:
             proc.kill()
 

@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # Why a sandboxed child sees no GPU where its parent does (issue 35, first lent H100): the device
 # probe child under each of its restrictions alone, and the restriction-free baseline. One call:
-#   run(command="bash bench/gpu_child_diagnose.sh", carry=[".gpu"], timeout_s=240)
+#   run(command="bash bench/investigations/gpu_child_diagnose.sh", carry=[".gpu"], timeout_s=240)
 set -uo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 export PYTHONUNBUFFERED=1 PYTHONDONTWRITEBYTECODE=1 NDRF_DEVICE=${NDRF_DEVICE:-cuda}
 PYTHON=${PYTHON:-python3}
 export PYTHONPATH="$PWD"

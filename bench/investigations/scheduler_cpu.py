@@ -4,12 +4,13 @@ runs took 20% of a core, every experiment re-read every 0.5 s): 60 experiments o
 service: nothing is admitted), then the CPU seconds of 20 ticks, i.e. 10 s at the 0.5 s interval,
 after a first tick.
 
-    python -m bench.scheduler_cpu [--runs 200] [--experiments 60]
+    python -m bench.investigations.scheduler_cpu [--runs 200] [--experiments 60]
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import tempfile
 import time
 
@@ -22,6 +23,8 @@ from services.jobs.service import Caller, JobService
 from services.queue.local import LocalEventBus, LocalJobQueue
 from services.settings import Limits
 from services.store.local import FolderStore
+
+log = logging.getLogger("bench.investigations.scheduler_cpu")
 
 
 def measure(runs: int, experiments_count: int, ticks: int = 20) -> float:
@@ -47,9 +50,10 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=200)
     parser.add_argument("--experiments", type=int, default=60)
     args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
     cpu = measure(args.runs, args.experiments)
-    print(f"{args.experiments} experiments of {args.runs} runs: 20 ticks (10 s at 0.5 s) took {cpu:.2f} CPU s "
-          f"({10 * cpu:.1f}% of a core)")
+    log.info("%d experiments of %d runs: 20 ticks (10 s at 0.5 s) took %.2f CPU s (%.1f%% of a core)",
+             args.experiments, args.runs, cpu, 10 * cpu)
 
 
 if __name__ == "__main__":

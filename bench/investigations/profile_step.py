@@ -1,7 +1,8 @@
 """Where an NDRF iteration's time goes, by sampling profiler.
 
-    py-spy record --format raw --rate 200 -o /tmp/steps.txt -- python -m bench.profile_step --iterations 30
-    python -m bench.profile_step --summarize /tmp/steps.txt
+    py-spy record --format raw --rate 200 -o /tmp/steps.txt -- \
+        python -m bench.investigations.profile_step --iterations 30
+    python -m bench.investigations.profile_step --summarize /tmp/steps.txt
 
 The first command runs ``examples/demo.json`` as written with ``"method": "ndrf-lhs"`` (its other
 settings the defaults, the warm-up cut to 20 steps) for ``--iterations`` iterations under py-spy;
@@ -14,10 +15,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from collections import Counter
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
+log = logging.getLogger("bench.investigations.profile_step")
 
 #: (substring of a frame's file, part of an iteration), first match from the innermost frame outwards
 PARTS = (
@@ -74,8 +77,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--iterations", type=int, default=30, help="iterations to run")
     parser.add_argument("--summarize", type=Path, help="summarize a py-spy raw profile instead of training")
     args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.summarize:
-        print(summarize(args.summarize))
+        log.info("%s", summarize(args.summarize))
     else:
         run(args.iterations)
 

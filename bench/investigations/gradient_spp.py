@@ -1,6 +1,6 @@
 """Samples per pixel of ``ndrf gradient``'s images: their error against ``prb`` and their seconds.
 
-``python -m bench.gradient_spp [--job hidden-object] [--method ndrf-rhs] [--spps 1,4,16,64] [--seeds 0,1]``
+``python -m bench.investigations.gradient_spp [--job hidden-object] [--method ndrf-rhs] [--spps 1,4,16,64] [--seeds 0,1]``
 
 The command's own path (:func:`services.solver.optimize.evaluate.evaluate_gradient`: ``prepare``,
 ``make_method``, ``trainer_for``, the job's warm-up training, ``method.images``), trained once per
@@ -28,7 +28,7 @@ from bench.common import machine, markdown_table, relative_error, write_markdown
 
 log = logging.getLogger(__name__)
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def images_of(prepared, method, fields, spp: int, seed: int) -> np.ndarray:
@@ -77,7 +77,7 @@ def run(job: dict, method_name: str, spps: list[int], seeds: list[int], referenc
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m bench.gradient_spp", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m bench.investigations.gradient_spp", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--job", default="hidden-object", help="a job file of examples/ (its name)")
     parser.add_argument("--method", default="ndrf-rhs")
@@ -106,7 +106,7 @@ def main(argv: list[str] | None = None) -> None:
             f"training per seed) against `prb` at 2 x {args.reference_spp} spp (its own noise: "
             f"{result['reference_noise']:.3f}).\n\n"
             + markdown_table(["spp", "relative error (mean)", f"per seed {args.seeds}", "query s (median)"], rows))
-    write_markdown(out, "bench.gradient_spp", argv, text)
+    write_markdown(out, "bench.investigations.gradient_spp", argv, text)
     log.info("\n%s", text)
 
 

@@ -1,6 +1,7 @@
 """A texture the images cannot pin down: the recipe's choice of resolution against the alternatives.
 
-``python -m bench.texture_footprint [--iterations 200] [--seeds 0,1,2] [--variants auto,full,laplacian,coarse]``
+``python -m bench.investigations.texture_footprint [--iterations 200] [--seeds 0,1,2]
+[--variants auto,full,laplacian,coarse]``
 
 The user's job of the issue: the textured box's 64 x 64 back-wall albedo (12,288 scalars) seen by
 its 4 views at 64 x 64 pixels (about 1,300 wall pixels each: fewer pixels than texels), the
@@ -34,7 +35,7 @@ from bench.common import machine, markdown_table, write_markdown
 
 log = logging.getLogger(__name__)
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 KEY = "wall.reflectance.data"
 FILM = 64
 VARIANTS = {"auto": {}, "full": {"resolution": "full"},
@@ -115,7 +116,7 @@ def figure(rows: list[dict], path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m bench.texture_footprint", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m bench.investigations.texture_footprint", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--iterations", type=int, default=200)
     parser.add_argument("--seeds", default="0,1,2")
@@ -146,8 +147,8 @@ def main(argv: list[str] | None = None) -> None:
         r.pop("final")
         r.pop("se")
     args.out.write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1))
-    write_markdown(args.out, "bench.texture_footprint", argv, text + f"\n\n![truth, answer, error and standard error]"
-                                                                     f"({args.out.stem}.png)")
+    picture = f"\n\n![truth, answer, error and standard error]({args.out.stem}.png)"
+    write_markdown(args.out, "bench.investigations.texture_footprint", argv, text + picture)
     log.info("\n%s", text)
 
 

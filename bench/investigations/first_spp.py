@@ -1,7 +1,7 @@
 """Samples per pixel of ``prb``'s first batch, in a scene whose scalar is seen directly and in one
 whose scalar is not.
 
-``python -m bench.first_spp [--jobs hidden-object,demo] [--seeds 0,1,2] [--spps 1,4,8,16]``
+``python -m bench.investigations.first_spp [--jobs hidden-object,demo] [--seeds 0,1,2] [--spps 1,4,8,16]``
 
 The default job of each ``examples/`` file (:func:`bench.regime.default_job`: ``auto`` chooses
 everything else), once per seed and per first samples per pixel, set through the job's
@@ -24,7 +24,7 @@ from bench.regime import default_job, merge, run_product
 
 log = logging.getLogger(__name__)
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def run(name: str, seeds: list[int], spps: list[int], target_error: float, budget: float) -> dict[int, list]:
@@ -45,7 +45,7 @@ def run(name: str, seeds: list[int], spps: list[int], target_error: float, budge
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m bench.first_spp", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m bench.investigations.first_spp", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--jobs", default="hidden-object,demo")
     parser.add_argument("--seeds", default="0,1,2")
@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> None:
             lines.append([name, spp, first, f"{per[len(per) // 2]:.3f}" if per else "-"])
     text = markdown_table(["job", "first spp", f"first max error < {args.target_error}, seeds {args.seeds}",
                            "s / iteration (median seed)"], lines)
-    write_markdown(args.out, "bench.first_spp", argv, text)
+    write_markdown(args.out, "bench.investigations.first_spp", argv, text)
     log.info("\n%s", text)
 
 

@@ -1,6 +1,6 @@
 """Levenberg-Marquardt's trust region in an open and a closed scene: its growth and its start.
 
-``python -m bench.trust_growth [--jobs room-open-8,room-closed-8] [--seeds 0,1,2] [--growths 1.5,2]
+``python -m bench.investigations.trust_growth [--jobs room-open-8,room-closed-8] [--seeds 0,1,2] [--growths 1.5,2]
 [--starts 1,4]``
 
 The default job of each ``examples/`` file (:func:`bench.regime.default_job`), once per seed, per
@@ -23,7 +23,7 @@ from bench.regime import default_job, merge, run_product
 
 log = logging.getLogger(__name__)
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def run(name: str, seeds: list[int], growths: list[float], starts: list[float], target_error: float,
@@ -51,7 +51,7 @@ def run(name: str, seeds: list[int], growths: list[float], starts: list[float], 
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m bench.trust_growth", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m bench.investigations.trust_growth", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--jobs", default="room-open-8,room-closed-8")
     parser.add_argument("--seeds", default="0,1,2")
@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> None:
              for name, rows in results.items() for (growth, start), runs in rows.items()]
     text = markdown_table(["job", "trust growth", "first radius (learning rates)",
                            f"first max error < {args.target_error}, seeds {args.seeds}"], lines)
-    write_markdown(args.out, "bench.trust_growth", argv, text)
+    write_markdown(args.out, "bench.investigations.trust_growth", argv, text)
     log.info("\n%s", text)
 
 

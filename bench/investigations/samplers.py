@@ -1,6 +1,6 @@
 """Does a better sampler lower ``prb``'s gradient noise per sample? Mitsuba's samplers on one job.
 
-``python -m bench.samplers [--job hidden-object] [--spp 8] [--draws 40]``
+``python -m bench.investigations.samplers [--job hidden-object] [--spp 8] [--draws 40]``
 
 ``prb``'s gradient noise is what the answer's standard error averages down (and, before the
 answer was an estimate, the noise floor a run ended on). Beyond more samples, a sampler that
@@ -27,7 +27,7 @@ from bench.common import machine, markdown_table, write_markdown
 
 log = logging.getLogger(__name__)
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLERS = ("independent", "stratified", "multijitter", "orthogonal", "ldsampler")
 
 
@@ -67,7 +67,7 @@ def gradients(job: dict, sampler: str, spp: int, draws: int) -> tuple[np.ndarray
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m bench.samplers", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m bench.investigations.samplers", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--job", default="hidden-object")
     parser.add_argument("--spp", type=int, default=8)
@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> None:
                             ", ".join(f"{v:.2f}" for v in r["noise_per_sample"])] for name, r in rows.items()])
     args.out.write_text(json.dumps({"machine": machine(), "job": args.job, "draws": args.draws, "rows": rows},
                                    indent=1))
-    write_markdown(args.out, "bench.samplers", argv, text)
+    write_markdown(args.out, "bench.investigations.samplers", argv, text)
     log.info("\n%s", text)
 
 

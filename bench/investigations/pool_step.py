@@ -1,6 +1,6 @@
 """Seconds per training step with and without the residual-batch pool (``training.pool``).
 
-``python -m bench.pool_step [--steps N]``: the Cornell box at 64x64, the red wall's albedo,
+``python -m bench.investigations.pool_step [--steps N]``: the Cornell box at 64x64, the red wall's albedo,
 ``ndrf-lhs``'s fields, the default training configuration; each setting in its own process, 5
 steps outside the clock (kernel compilation), then ``N`` timed steps. Writes
 ``bench/results/pool_step.json``.
@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 log = logging.getLogger(__name__)
-OUT = Path(__file__).resolve().parent / "results" / "pool_step.json"
+OUT = Path(__file__).resolve().parents[1] / "results" / "pool_step.json"
 
 
 def measure(pool: bool, steps: int) -> dict:
@@ -46,14 +46,14 @@ def measure(pool: bool, steps: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m bench.pool_step", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m bench.investigations.pool_step", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=60)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     rows = []
     for pool in (False, True):
-        code = f"import json, bench.pool_step as b; print(json.dumps(b.measure({pool}, {args.steps})))"
+        code = f"import json, bench.investigations.pool_step as b; print(json.dumps(b.measure({pool}, {args.steps})))"
         result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
         rows.append(json.loads(result.stdout.strip().splitlines()[-1]))
         log.info("pool %s: %.3f s per step", pool, rows[-1]["step_seconds"])

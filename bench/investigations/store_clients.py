@@ -1,4 +1,4 @@
-"""``python -m bench.store_clients``: which S3 client the store uses, measured.
+"""``python -m bench.investigations.store_clients``: which S3 client the store uses, measured.
 
 Per-operation latency (median and 90th percentile of ``--reps`` calls) of obstore, boto3 and
 s3fs against the same moto server on loopback (``harness/s3server.py``, a child process), for the
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import statistics
 import subprocess
 import sys
@@ -20,7 +21,8 @@ from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
+log = logging.getLogger("bench.investigations.store_clients")
 KIB = b"k" * 1024
 MIB = b"m" * (1 << 20)
 
@@ -141,10 +143,11 @@ def _python_startup() -> float:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m bench.store_clients", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m bench.investigations.store_clients", description=__doc__)
     parser.add_argument("--reps", type=int, default=100)
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "store_clients.json")
     args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
     proc, endpoint = _server()
     results: dict = {"endpoint": "moto (harness/s3server.py) on loopback", "reps": args.reps, "clients": {}}
     try:
@@ -152,7 +155,7 @@ def main(argv: list[str] | None = None) -> None:
             try:
                 ops = factory(endpoint)
             except ImportError:
-                print(f"{name}: not installed, skipped")
+                log.info("%s: not installed, skipped", name)
                 continue
             for i in range(200):
                 ops["_seed"](i)
@@ -178,12 +181,12 @@ def main(argv: list[str] | None = None) -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2) + "\n")
     ops = list(next(iter(results["clients"].values()))["ops"])
-    print("| client | " + " | ".join(ops) + " | import s | installed MiB (closure) |")
-    print("|---" * (len(ops) + 3) + "|")
+    lines = ["| client | " + " | ".join(ops) + " | import s | installed MiB (closure) |", "|---" * (len(ops) + 3) + "|"]
     for name, r in results["clients"].items():
         cells = [f"{r['ops'][op]['median_ms']:.2f} ({r['ops'][op]['p90_ms']:.2f})" for op in ops]
-        print(f"| {name} | " + " | ".join(cells) + f" | {r['import_s']:.2f} | {r['installed_mib']:.1f} "
-              f"({len(r['distributions'])} dists) |")
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | {r['import_s']:.2f} | {r['installed_mib']:.1f} "
+                     f"({len(r['distributions'])} dists) |")
+    log.info("%s", "\n".join(lines))
 
 
 if __name__ == "__main__":
