@@ -43,7 +43,7 @@ def run(job: dict, seed: int, iterations: int) -> dict:
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         summary = run_local(JobSpec.model_validate(dict(job, seed=seed, iterations=iterations)), Path(tmp) / "job")
-    final, truth = np.asarray(summary["final"], float), np.asarray(summary["target"], float)
+    final, truth = np.asarray(summary["estimate"], float), np.asarray(summary["target_values"], float)
     se = summary.get("standard_error")
     return {"seed": seed, "iterations": iterations, "status": summary["status"], "ran": summary["iterations"],
             "capped": "cap of" in summary["stopped"]["reason"], "stopped": summary["stopped"]["reason"],

@@ -34,11 +34,11 @@ def run(quick: bool) -> dict:
             files = JobFiles(FolderStore(tmp), "job")
             records = [files.iteration_record(k) for k in files.iterations()]
         elapsed, curve = 0.0, []
-        target = np.asarray(summary["target"])
+        target = np.asarray(summary["target_values"])
         for record in records:
             elapsed += sum(record["seconds"].values())
             error = float(np.max(np.abs(np.asarray(record["updated_parameters"]) - target)))
             curve.append({"iteration": record["iteration"], "seconds": elapsed, "error": error})
-        out[method] = {"status": summary["status"], "final": summary["final"], "target": summary["target"],
+        out[method] = {"status": summary["status"], "final": summary["estimate"], "target": summary["target_values"],
                        "curve": curve}
     return out

@@ -98,7 +98,7 @@ def run_product(job: dict, folder: Path) -> dict:
     for path in sorted(folder.glob("iterations/*/record.json")):
         record = json.loads(path.read_text())
         curve.append([record["iteration"], *pose_error(record["parameters"])])
-    final = summary.get("final") or [np.nan] * 6
+    final = summary.get("estimate") or [np.nan] * 6
     return {"seconds": seconds, "status": summary["status"], "error": summary.get("error"),
             "final": final, "final_error": pose_error(final), "curve": curve, "iterations": summary["iterations"],
             "method": plan["recipe"]["method"], "optimizer": plan["recipe"]["optimizer"],

@@ -53,7 +53,7 @@ def job_figure(folders: list[Path], out: Path) -> None:
         ax.axis("off")
 
     ax = fig.add_subplot(grid[1, :])
-    target_values = np.asarray(first.read("summary.json").get("target") or [], dtype=float)
+    target_values = np.asarray(first.read("summary.json").get("target_values") or [], dtype=float)
     styles = ("-", ":", "-.", "--")
     for j, (job, spec) in enumerate(zip(jobs, specs)):
         k, values = _trajectory(job)

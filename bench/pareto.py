@@ -110,7 +110,8 @@ def run_default(job: dict, seed: int, iterations: int, change: dict | None = Non
     per_iteration = (last - first) / max(summary["iterations"] - 1, 1)
     out = {"seed": seed, "iterations": summary["iterations"], "seconds": seconds, "status": summary["status"],
            "fixed_seconds": fixed, "seconds_per_iteration": per_iteration, "method": plan["recipe"].get("method"),
-           "stopped": (summary.get("stopped") or {}).get("reason"), "estimate": summary.get("estimate")}
+           "stopped": (summary.get("stopped") or {}).get("reason"),
+           "estimate": {"kind": summary.get("estimate_kind"), "window": summary.get("estimate_window")}}
     if texture is not None:
         out["error"] = error_of(texture["final"], texture["target"], True)
         if texture["last"] is not None:
@@ -118,11 +119,11 @@ def run_default(job: dict, seed: int, iterations: int, change: dict | None = Non
         if texture["se"] is not None:
             out["z"] = (np.abs(texture["final"] - texture["target"]) / np.maximum(texture["se"], 1e-12)).ravel().tolist()
     else:
-        out["error"] = error_of(summary["final"], summary["target"], False)
-        out["last_error"] = error_of(summary["last_iterate"], summary["target"], False)
+        out["error"] = error_of(summary["estimate"], summary["target_values"], False)
+        out["last_error"] = error_of(summary["last_iterate"], summary["target_values"], False)
         if summary.get("standard_error"):
             se = np.asarray(summary["standard_error"])
-            out["z"] = (np.abs(np.asarray(summary["final"]) - summary["target"]) / np.maximum(se, 1e-12)).tolist()
+            out["z"] = (np.abs(np.asarray(summary["estimate"]) - summary["target_values"]) / np.maximum(se, 1e-12)).tolist()
             out["standard_error"] = se.tolist()
     return out
 

@@ -44,7 +44,7 @@ def run(job: dict, folder: Path, name: str, target_error: float) -> dict:
     seconds = time.perf_counter() - started
     if summary["status"] != "succeeded":
         raise RuntimeError(f"{name}: {summary['status']}: {summary.get('error')}")
-    final = float(np.max(np.abs(np.asarray(summary["final"]) - np.asarray(summary["target"]))))
+    final = float(np.max(np.abs(np.asarray(summary["estimate"]) - np.asarray(summary["target_values"]))))
     plan = json.loads((folder / name / "plan.json").read_text())
     return {"seconds_to_target": reached[0] if reached else None, "final_error": final, "seconds": seconds,
             "warm_start": plan.get("warm_start")}

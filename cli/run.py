@@ -69,16 +69,21 @@ def _texture_row(key: str, files: dict, out: Path, init: dict | None) -> tuple[l
 
 
 def _final_table(summary: dict, out: Path):
+    """The answer as a table, from ``summary.json`` (of this version or an older one)."""
     from rich.table import Table
+
+    from schemas.summary import Summary
+
+    summary = Summary.read(summary).model_dump()
 
     table = Table(title=f"{summary['method']}: {summary['status']} after {summary['iterations']} iterations "
                         f"({summary['seconds']:.0f} s)")
     for column in ("parameter", "init", "final ± standard error", "target"):
         table.add_column(column, justify="left" if column == "parameter" else "right")
     scalars = summary["scalars"] or []
-    targets = summary.get("target") or [math.nan] * len(scalars)
+    targets = summary.get("target_values") or [math.nan] * len(scalars)
     errors = summary.get("standard_error") or [None] * len(scalars)
-    for label, init, final, error, target in zip(scalars, summary["init"], summary["final"], errors, targets):
+    for label, init, final, error, target in zip(scalars, summary["init"], summary["estimate"], errors, targets):
         value = f"{final:.4f}" + ("" if error is None else f" ± {error:.4f}")
         table.add_row(label, f"{init:.4f}", value, "-" if target is None or math.isnan(target) else f"{target:.4f}")
     captions = []
@@ -95,10 +100,10 @@ def _final_table(summary: dict, out: Path):
                       "-" if chamfer is None else f"Chamfer {chamfer:.4f}")
         captions.append(f"{shape}: {mesh['file']}" + ("" if chamfer is None else
                                                        f", Chamfer distance {chamfer:.4g} to the target surface"))
-    estimate, stopped = summary.get("estimate") or {}, summary.get("stopped") or {}
-    if estimate.get("window"):
-        first, last = estimate["window"]
-        captions.append(f"final: the estimate from iterations {first} to {last} ({estimate['kind']}); the last "
+    stopped = summary.get("stopped") or {}
+    if summary.get("estimate_window"):
+        first, last = summary["estimate_window"]
+        captions.append(f"final: the estimate from iterations {first} to {last} ({summary['estimate_kind']}); the last "
                         f"iterate is summary.json's last_iterate")
     if stopped.get("reason"):
         captions.append(f"stopped: {stopped['reason']}")
@@ -138,7 +143,7 @@ def run_command(job_path: str, out_dir: str, resume: bool, quiet: bool) -> None:
         raise click.ClickException(str(exc)) from None
     finally:
         signal.signal(signal.SIGINT, previous)
-    if summary.get("final") is not None:
+    if summary.get("estimate") is not None:
         console.print(_final_table(summary, Path(out_dir)))
     if summary["status"] == "interrupted":
         raise click.ClickException(f"interrupted after {summary['iterations']} iteration(s): continue with "

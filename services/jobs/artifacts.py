@@ -19,6 +19,7 @@ import numpy as np
 from schemas.files import mesh_name
 from schemas.outcomes import Outcome
 from schemas.records import IterationRecord, JobStatus
+from schemas.summary import Summary
 from services.jobs.state import Fenced, JobStates
 from services.store.files import dumps
 from services.store.images import display_png, exr_bytes, gradient_png, npy_bytes, srgb_png
@@ -208,39 +209,39 @@ class JobWriter:
 
     # ----------------------------------------------------------------- the end
 
-    def summary(self, outcome) -> dict:
-        """``summary.json`` of a finished run (from a :class:`RunOutcome` or its dict)."""
+    def summary(self, outcome) -> Summary:
+        """``summary.json`` of a finished run (from a :class:`RunOutcome` or its dict): the
+        outcome's answer with the plan's scalars, initial and target values, and the files of
+        the recovered textures, poses and meshes."""
         data = outcome if isinstance(outcome, dict) else vars(outcome)
         plan = self.files.read(JobFiles.PLAN, {}) or {}
-        summary = {"status": data["status"], "method": plan.get("method"), "iterations": data["iterations"],
-                   "seconds": data["seconds"], "scalars": plan.get("scalars"), "init": plan.get("init"),
-                   "final": data.get("parameters"), "standard_error": data.get("standard_error"),
-                   "last_iterate": data.get("last_iterate"), "estimate": data.get("estimate"),
-                   "stopped": data.get("stopped"), "target": plan.get("target_values"),
-                   "error": data.get("error"), "field": data.get("field")}
+        fields = {name: data.get(name) for name in ("status", "iterations", "seconds", "estimate", "standard_error",
+                                                     "estimate_kind", "estimate_window", "run_error", "floor_error",
+                                                     "last_iterate", "stopped", "error", "field", "poses")}
+        summary = Summary(**fields, method=plan.get("method"), scalars=plan.get("scalars"), init=plan.get("init"),
+                          target_values=plan.get("target_values"))
         textures = [t["key"] for t in plan.get("textures") or []]
         if textures:   # the recovered textures' files (written at the end of a run that got there)
-            summary["textures"] = {key: self._texture_files(key) for key in textures
-                                   if self.files.store.exists(self.files.texture_key(None, key) + ".npy")}
-            for key, files in summary["textures"].items():   # a synthetic job's target texture, the error, the last
+            summary.textures = {key: self._texture_files(key) for key in textures
+                                if self.files.store.exists(self.files.texture_key(None, key) + ".npy")}
+            for key, files in summary.textures.items():   # a synthetic job's target texture, the error, the last
                 for suffix, name in (("target", "target"), ("standard_error", "standard_error"), ("last", "last")):
                     extra = self._texture_files(f"{key}.{suffix}")
                     files.update({name if ext == "npy" else f"{name}_{ext}": path for ext, path in extra.items()
                                   if ext != "png" or suffix != "target"})
         if data.get("poses"):   # a pose job's answer: final/poses.json, as a 4x4 matrix and the XML to paste back
-            summary["poses"] = data["poses"]
             self._put(self.files.key("final/poses.json"), _json(data["poses"]), durable=True)
         if data.get("meshes"):   # a shape job's answer: final/<shape id>.ply, and its Chamfer distance
-            summary["meshes"] = {}
+            summary.meshes = {}
             for shape, mesh in data["meshes"].items():
                 name = f"final/{mesh_name(shape)}.ply"
-
                 self._put(self.files.key(name), base64.b64decode(mesh["ply"]), durable=True)
-                summary["meshes"][shape] = {**{k: v for k, v in mesh.items() if k != "ply"}, "file": name}
-        if summary["final"] is not None and summary["target"] is not None and summary["final"]:
-            summary["max_abs_error"] = float(np.max(np.abs(np.asarray(summary["final"]) - np.asarray(summary["target"]))))
+                summary.meshes[shape] = {**{k: v for k, v in mesh.items() if k != "ply"}, "file": name}
+        if summary.estimate and summary.target_values is not None:
+            summary.estimate_error = float(np.max(np.abs(np.asarray(summary.estimate)
+                                                         - np.asarray(summary.target_values, np.float64))))
         self.guard()
-        self._put(self.files.key(JobFiles.SUMMARY), _json(summary))
+        self._put(self.files.key(JobFiles.SUMMARY), _json(summary.model_dump(mode="json")))
         return summary
 
     def _texture_files(self, name: str) -> dict[str, str]:

@@ -13,7 +13,9 @@ from pathlib import Path
 
 from schemas.errors import InvalidJob
 from schemas.job import JobSpec
+from schemas.outcomes import Outcome
 from schemas.records import JobRecord, JobStatus
+from schemas.summary import Summary
 from services.jobs.artifacts import JobWriter
 from services.jobs.preflight import upload_limits
 from services.jobs.service import scene_label
@@ -62,18 +64,18 @@ def run_local(spec: JobSpec, out: Path, *, base_dir: Path | None = None, resume:
         scene_file = stage_job(spec, out / "scene", upload_limits(Limits()), base_dir)
     except InvalidJob as exc:
         writer.finish({"status": "failed", "iterations": 0, "seconds": 0.0, "error": str(exc), "field": exc.field})
-        return files.read(JobFiles.SUMMARY)
+        return Summary.read(files.read(JobFiles.SUMMARY)).model_dump()
     checkpoint = files.resume_checkpoint() if resume else None
     try:  # a job folder beside this one (the same store, the same local owner)
         warm = source_checkpoint(states, spec, "local") if checkpoint is None else None
     except InvalidJob as exc:
         writer.finish({"status": "failed", "iterations": 0, "seconds": 0.0, "error": str(exc), "field": exc.field})
-        return files.read(JobFiles.SUMMARY)
+        return Summary.read(files.read(JobFiles.SUMMARY)).model_dump()
     outcome = InverseRenderingRun(spec, writer, scene_file=scene_file, resume=checkpoint, warm=warm).execute()
     writer.finish(outcome)
-    summary = files.read(JobFiles.SUMMARY) or {"status": outcome.status, "iterations": outcome.iterations}
-    summary["status"] = outcome.status
-    return summary
+    if outcome.status == Outcome.INTERRUPTED:   # no summary.json: the job goes on from its checkpoint
+        return Summary(status=outcome.status, iterations=outcome.iterations, seconds=outcome.seconds).model_dump()
+    return Summary.read(files.read(JobFiles.SUMMARY)).model_dump()
 
 
 def _claim(states: JobStates, files: JobFiles, spec: JobSpec, resume: bool) -> str:

@@ -40,7 +40,7 @@ def test_run_writes_the_documented_job_folder(mi, tmp_path):
 
 def test_parameters_move_towards_the_target(mi, tmp_path):
     summary = _run(small_job("prb", iterations=12, learning_rate=0.08), tmp_path)
-    first, last = summary["init"], summary["final"]
+    first, last = summary["init"], summary["estimate"]
     assert last[0] > first[0] + 0.2          # red channel rises towards 0.57
     assert last[1] < first[1] and last[2] < first[2]
 
@@ -51,9 +51,9 @@ def test_same_seed_same_run(mi, tmp_path):
     and the Gauss-Newton solve of the default optimizer amplifies it (~1e-7 relative)."""
     a = _run(small_job("ndrf-lhs", iterations=3), tmp_path / "a")
     b = _run(small_job("ndrf-lhs", iterations=3), tmp_path / "b")
-    assert np.allclose(a["final"], b["final"], rtol=1e-6, atol=0)
+    assert np.allclose(a["estimate"], b["estimate"], rtol=1e-6, atol=0)
     c = _run(small_job("ndrf-lhs", iterations=3, seed=4), tmp_path / "c")
-    assert not np.allclose(c["final"], a["final"], rtol=1e-4, atol=0)
+    assert not np.allclose(c["estimate"], a["estimate"], rtol=1e-4, atol=0)
 
 
 def test_cancel_stops_between_training_steps_and_keeps_artifacts(mi, tmp_path):
@@ -113,4 +113,4 @@ def test_sigkill_mid_run_resumes_from_the_last_checkpoint(mi, tmp_path):
     assert summary["status"] == "succeeded"
     # the resumed run draws the samples the uninterrupted one drew: equal up to float rounding of
     # kernels traced anew in another process (see test_same_seed_same_run)
-    np.testing.assert_allclose(summary["final"], reference["final"], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(summary["estimate"], reference["estimate"], rtol=1e-6, atol=1e-9)

@@ -25,15 +25,15 @@ def test_the_run_returns_its_estimate_with_standard_errors_and_the_last_iterate(
     summary = run_job(_job(), tmp_path / "job")
     assert summary["status"] == "succeeded"
     scalars = summary["scalars"]
-    assert len(summary["standard_error"]) == len(scalars) == len(summary["last_iterate"]) == len(summary["final"])
+    assert len(summary["standard_error"]) == len(scalars) == len(summary["last_iterate"]) == len(summary["estimate"])
     assert all(0 < se < 0.1 for se in summary["standard_error"])
-    assert summary["final"] != summary["last_iterate"]                     # an average, not the last step
-    first, last = summary["estimate"]["window"]
-    assert summary["estimate"]["kind"] == "newton" and 0 <= first < last == 59
+    assert summary["estimate"] != summary["last_iterate"]                     # an average, not the last step
+    first, last = summary["estimate_window"]
+    assert summary["estimate_kind"] == "newton" and 0 <= first < last == 59
     record = json.loads((tmp_path / "job" / "iterations" / "000059" / "record.json").read_text())
-    assert record["estimate"] == summary["final"] and record["standard_error"] == summary["standard_error"]
+    assert record["estimate"] == summary["estimate"] and record["standard_error"] == summary["standard_error"]
     assert record["estimate_window"] == [first, last]
-    assert summary["max_abs_error"] == max(abs(f - t) for f, t in zip(summary["final"], summary["target"]))
+    assert summary["estimate_error"] == max(abs(f - t) for f, t in zip(summary["estimate"], summary["target_values"]))
     assert summary["stopped"]["what"] == "stop" and "cap of 60" in summary["stopped"]["reason"]
 
 
@@ -49,7 +49,7 @@ def test_a_run_stops_at_the_accuracy_asked_for_and_says_why(mi, tmp_path):
     plan = json.loads((tmp_path / "job" / "plan.json").read_text())
     assert plan["events"][-1]["what"] == "stop" and plan["events"][-1]["iteration"] == summary["iterations"] - 1
     assert plan["recipe"]["stop"]["standard_error"] == asked
-    np.testing.assert_array_less(np.abs(np.asarray(summary["final"]) - summary["target"]),
+    np.testing.assert_array_less(np.abs(np.asarray(summary["estimate"]) - summary["target_values"]),
                                  4 * np.asarray(summary["standard_error"]))   # the truth within 4 SE
 
 
@@ -67,7 +67,7 @@ def test_twice_the_iterations_never_returns_a_worse_answer(mi, tmp_path):
     for seed in (0, 1, 2):
         for n in (30, 60):
             summary = run_job({**base, "iterations": n, "seed": seed}, tmp_path / f"s{seed}-{n}")
-            errors[seed, n] = summary["max_abs_error"]
+            errors[seed, n] = summary["estimate_error"]
     short, long = [errors[s, 30] for s in (0, 1, 2)], [errors[s, 60] for s in (0, 1, 2)]
     assert np.median(long) < np.median(short), errors
     assert all(b <= 1.2 * a for a, b in zip(short, long)), errors      # no seed gets worse beyond its noise
@@ -88,7 +88,7 @@ def test_the_demo_as_written_has_an_honest_error_bar_and_stops_only_at_its_accur
     ratios, capped, stopped = [], [], []
     for seed in range(5):
         summary = run_job({**job, "iterations": 120, "seed": seed}, tmp_path / f"seed{seed}")
-        error = np.abs(np.asarray(summary["final"]) - truth)
+        error = np.abs(np.asarray(summary["estimate"]) - truth)
         ratios += list(error / np.asarray(summary["standard_error"]))
         (capped if "cap of 120" in summary["stopped"]["reason"] else stopped).append(float(error.max()))
     ratios = np.asarray(ratios)

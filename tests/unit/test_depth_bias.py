@@ -44,9 +44,9 @@ def test_photographs_of_a_bright_closed_room_give_its_true_albedo(mi, tmp_path):
     job = _photograph_job(mi)
     unbiased = _run(job, tmp_path / "default")
     assert unbiased["status"] == "succeeded", unbiased
-    walls = np.asarray(unbiased["final"])
+    walls = np.asarray(unbiased["estimate"])
     assert np.max(np.abs(walls - TRUTH)) < 0.01, walls
 
     truncated = _run({**job, "render": {"resolution": [32, 32], "max_depth": 16}}, tmp_path / "depth-16")
     assert truncated["status"] == "succeeded", truncated
-    assert np.min(np.asarray(truncated["final"]) - TRUTH) > 0.01, truncated["final"]   # brighter to make up
+    assert np.min(np.asarray(truncated["estimate"]) - TRUTH) > 0.01, truncated["estimate"]   # brighter to make up

@@ -93,7 +93,7 @@ def test_the_loop_runs_gauss_newton_steps_towards_the_target(mi, tmp_path, metho
     summary = _run(small_job(method, iterations=6, learning_rate=0.1, final_learning_rate_ratio=1.0,
                              optimizer="gauss-newton", hessian=hessian), tmp_path)
     assert summary["status"] == "succeeded", summary
-    first, last, target = map(np.asarray, (summary["init"], summary["final"], summary["target"]))
+    first, last, target = map(np.asarray, (summary["init"], summary["estimate"], summary["target_values"]))
     assert last[0] > first[0] + 0.15         # red rises towards 0.57 (6 steps of at most 0.1 each)
     assert last[1] < first[1] and last[2] < first[2]
     assert np.max(np.abs(last - target)) < np.max(np.abs(first - target)) - 0.1

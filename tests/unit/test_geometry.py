@@ -192,7 +192,7 @@ def test_levenberg_marquardt_recovers_a_pose(tmp_path):
                                        "spp": 64}}, seed=1).model_dump(exclude_unset=True)
     summary = run_job(job, tmp_path)
     assert summary["status"] == "succeeded", summary.get("error")
-    final, target = np.array(summary["final"]), np.array(summary["target"])
+    final, target = np.array(summary["estimate"]), np.array(summary["target_values"])
     assert np.linalg.norm(final[:3] - target[:3]) < 0.05 / 2
     assert abs(final[4] - target[4]) < 10.0, final.tolist()
     poses = json.loads((tmp_path / "final" / "poses.json").read_text())

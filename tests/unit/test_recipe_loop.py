@@ -29,8 +29,8 @@ def test_the_default_recipe_batches_views_and_resumes_exactly(mi, tmp_path):
     assert all(len(set(v)) == len(v) for v in views) and max(len(v) for v in views) > 1
     plan = json.loads((tmp_path / "uninterrupted" / "plan.json").read_text())
     assert plan["recipe"]["optimizer"] == "levenberg-marquardt"
-    assert np.max(np.abs(np.asarray(reference["final"]) - np.asarray(reference["target"]))) < \
-        np.max(np.abs(np.asarray(reference["init"]) - np.asarray(reference["target"])))
+    assert np.max(np.abs(np.asarray(reference["estimate"]) - np.asarray(reference["target_values"]))) < \
+        np.max(np.abs(np.asarray(reference["init"]) - np.asarray(reference["target_values"])))
 
     calls = {"n": 0}
 
@@ -44,7 +44,7 @@ def test_the_default_recipe_batches_views_and_resumes_exactly(mi, tmp_path):
     events = [json.loads(line) for line in (out / "events.jsonl").read_text().splitlines()]
     assert [e["iteration"] for e in events if e["type"] == "resumed"][0] >= 4
     assert resumed["status"] == "succeeded"
-    np.testing.assert_allclose(resumed["final"], reference["final"], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(resumed["estimate"], reference["estimate"], rtol=1e-6, atol=1e-9)
 
 
 def test_a_cancel_during_the_set_up_ends_it_there(mi, tmp_path):

@@ -35,7 +35,7 @@ def _run(job, folder):
 
     summary = run_local(JobSpec.model_validate(job), folder)
     assert summary["status"] == "succeeded", summary["error"]
-    return np.array(summary["final"]), np.array(summary["target"])
+    return np.array(summary["estimate"]), np.array(summary["target_values"])
 
 
 def test_demo_recovers_the_red_wall(mi, tmp_path):

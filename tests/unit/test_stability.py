@@ -96,7 +96,7 @@ def assert_finite_run(summary, records):
     else:
         assert summary["status"] == "succeeded", summary
         assert len(records) == 3
-    assert summary["final"] is None or np.all(np.isfinite(summary["final"]))
+    assert summary["estimate"] is None or np.all(np.isfinite(summary["estimate"]))
     for record in records:
         for field in ("loss", "residual_radiance", "residual_differential"):
             value = record.get(field)

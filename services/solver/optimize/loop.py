@@ -334,14 +334,14 @@ class InverseRenderingRun:
             return outcome
         state, listed = run.state, run.prepared.textures.scalars
         parameter_set = run.prepared.problem.parameters
-        outcome.last_iterate = outcome.parameters = listed(state.parameters)
+        outcome.last_iterate = outcome.estimate = listed(state.parameters)
         if state.next_iteration > 0:
             answer = state.answer.estimate()
-            outcome.parameters = listed(answer.values)
+            outcome.estimate = listed(answer.values)
             outcome.standard_error = None if answer.standard_error is None else listed(answer.standard_error)
-            outcome.estimate = {"kind": answer.kind, "window": [answer.start, answer.end],
-                                "run_error": None if answer.run_error is None else listed(answer.run_error),
-                                "floor_error": None if answer.floor_error is None else listed(answer.floor_error)}
+            outcome.estimate_kind, outcome.estimate_window = answer.kind, [answer.start, answer.end]
+            outcome.run_error = None if answer.run_error is None else listed(answer.run_error)
+            outcome.floor_error = None if answer.floor_error is None else listed(answer.floor_error)
         if self._stopped():
             outcome.stopped = asdict(state.events[-1])
         if parameter_set.has_geometry:

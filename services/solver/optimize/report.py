@@ -74,12 +74,15 @@ class RunOutcome:
     status: Outcome  # never ``fenced``: that is the host's verdict on an attempt, not the run's
     iterations: int
     seconds: float
-    parameters: list[float] | None = None        # the answer: the estimate of every listed scalar
+    estimate: list[float] | None = None          # the answer: the estimate of every listed scalar
     error: str | None = None
     field: str | None = None
-    standard_error: list[float] | None = None    # of each scalar of ``parameters`` (None: too few iterations)
+    standard_error: list[float] | None = None    # of each scalar of ``estimate`` (None: too few iterations)
     last_iterate: list[float] | None = None      # the parameters of the last step, not averaged
-    estimate: dict | None = None                 # how the answer was formed: kind, window
+    estimate_kind: str | None = None             # how the answer was formed (schemas.summary.Summary)
+    estimate_window: list[int] | None = None
+    run_error: list[float] | None = None
+    floor_error: list[float] | None = None
     stopped: dict | None = None                  # why the run stopped: the decision, with its reason
     poses: list[dict] | None = None              # each posed shape's answer: 4x4 matrix and XML <transform>
     #: each optimized mesh's answer, by shape id: ``ply`` (base64 of a binary PLY), vertices, faces, chamfer
