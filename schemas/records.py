@@ -12,6 +12,8 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from schemas.plan import Plan
+
 
 class JobStatus(StrEnum):
     """``queued -> running -> succeeded | failed | canceled``; a running job whose worker stops
@@ -149,7 +151,7 @@ class JobPublic(BaseModel):
     metrics: dict[str, Any] | None = Field(None, description="Latest iteration: loss, residual norms, seconds per "
                                                               "phase, sanitized sample counts, the texture "
                                                               "summaries of a texture job.")
-    plan: dict[str, Any] | None = Field(None, description="What the job simulates (fields, terms) and why.")
+    plan: Plan | None = Field(None, description="What the job simulates and why (plan.json).")
     error: str | None = Field(None, description="Why the job failed.")
     field: str | None = Field(None, description="The job-file field an error concerns.")
     elapsed_seconds: float | None = Field(None, description="Seconds since the job started running.")

@@ -321,7 +321,7 @@ class InverseRenderingRun:
 
     def _report_plan(self) -> None:
         assert self.run is not None
-        self.reporter.plan(describe(self.run, seconds=self.seconds, warm_start=self.warm_report))
+        self.reporter.plan(describe(self.run, seconds=self.seconds, warm_start=self.warm_report).model_dump(mode="json"))
 
     def _outcome(self, status: Outcome, started: float, error: str | None = None,
                  field: str | None = None) -> RunOutcome:

@@ -8,11 +8,12 @@ from dataclasses import asdict
 
 import numpy as np
 
+from schemas.plan import Plan
 from services.solver.backend import describe_device
 from services.solver.optimize.run import Run
 
 
-def describe(run: Run, *, seconds: dict, warm_start: dict | None) -> dict:
+def describe(run: Run, *, seconds: dict, warm_start: dict | None) -> Plan:
     """``plan.json``: what the run simulates and why (the recipe with its decisions), the scalars
     with their bounds and targets, and the events of the run so far."""
     prepared, recipe, built, state = run.prepared, run.recipe, run.built, run.state
@@ -23,7 +24,7 @@ def describe(run: Run, *, seconds: dict, warm_start: dict | None) -> dict:
         depths["target"] = prepared.target_depth.describe()
     if recipe.warnings:
         depths["warnings"] = list(recipe.warnings)
-    return {
+    return Plan(**{
         "method": recipe.method,
         "device": describe_device(),
         "recipe": recipe.to_json(),
@@ -50,7 +51,7 @@ def describe(run: Run, *, seconds: dict, warm_start: dict | None) -> dict:
         "effects": recipe.effects.to_json() if recipe.effects is not None else None,
         "iterations": spec.iterations,
         "warm_start": warm_start,
-    }
+    })
 
 
 def _bound(values: list[float]) -> list[float | None]:
