@@ -1,9 +1,10 @@
 """The objects of a run, built from its recipe (nerfstudio's config-to-object pattern): the
 problem narrowed to the recipe's effects, the gradient method, the trainer of exactly the fields
 it uses, the source of the second-order steps' Jacobian, and the optimizer. Nothing is decided
-here: every choice is the recipe's (:mod:`.resolve`).
+here: every choice is the recipe's (:mod:`.resolve`), and this module reads nothing else of the
+job than its seed and the settings it passes on unread (the training's, ``render.freeze``).
 
-The cached camera first hits serve ``render.candidate = "field"`` and ``render.first_hits =
+The cached camera first hits serve the recipe's ``candidate = "field"`` and ``first_hits =
 "cached"``; with ``jacobian: "differential-field"``, ``dL_theta`` queried at cached first hits is
 the Jacobian of the second-order steps whatever the gradient method (with ``prb``: the hybrid).
 """
@@ -52,11 +53,10 @@ def build(prepared: Prepared, recipe: Recipe) -> Built:
     if isinstance(method, Prb):
         method.freeze = spec.render.freeze
         method.fit_views(len(prepared.targets), len(channel_groups(list(problem.layout.channels))))
-    if spec.training.head is not None:  # the many-parameter head (checked by setup.check: ndrf-rhs, first order)
+    if recipe.head:  # the many-parameter head (checked by setup.check: ndrf-rhs, first order)
         from services.solver.estimators.methods.head import NdrfHead
 
         method = NdrfHead()
-    render = spec.render
     hybrid = recipe.fields_for is not None and recipe.fields_for != recipe.method
     field_user = make_method(recipe.fields_for, problem.effects, recipe.depth) if hybrid and recipe.fields_for else method
     trainer = None
@@ -65,12 +65,10 @@ def build(prepared: Prepared, recipe: Recipe) -> Built:
                                seed=spec.seed)
     jacobian_method = None
     if hybrid:
-        jacobian_method = _cached(prepared, field_user, trainer, field_candidate=False, cached_lhs=True)
-    elif recipe.jacobian == "differential-field":  # ndrf-lhs: its own images are dL_theta, at cached hits
-        render = render.model_copy(update={"first_hits": "cached"})
-    if render.candidate == "field" or render.first_hits == "cached":
-        method = _cached(prepared, method, trainer, field_candidate=render.candidate == "field",
-                         cached_lhs=render.first_hits == "cached")
+        jacobian_method = _cached(prepared, recipe, field_user, trainer, field_candidate=False, cached_lhs=True)
+    if recipe.candidate == "field" or recipe.first_hits == "cached":
+        method = _cached(prepared, recipe, method, trainer, field_candidate=recipe.candidate == "field",
+                         cached_lhs=recipe.first_hits == "cached")
     return Built(method, trainer, jacobian_method, build_optimizer(prepared, recipe))
 
 
@@ -91,14 +89,14 @@ def build_optimizer(prepared: Prepared, recipe: Recipe) -> ParameterOptimizer:
     return optimizer
 
 
-def _cached(prepared: Prepared, method: GradientMethod, trainer: FieldTrainer | None, *, field_candidate: bool,
-            cached_lhs: bool) -> GradientMethod:
+def _cached(prepared: Prepared, recipe: Recipe, method: GradientMethod, trainer: FieldTrainer | None, *,
+            field_candidate: bool, cached_lhs: bool) -> GradientMethod:
     """The method on camera first hits traced once per job."""
     from services.solver.estimators.first_hits import FirstHitCache
     from services.solver.estimators.methods.cached import CachedFirstHits
 
     spec = prepared.spec
     fields = [f for f in trainer.fields().values() if isinstance(f, NeuralField)] if trainer is not None else []
-    cache = FirstHitCache(prepared.problem, sorted(prepared.targets), spec.render.gradient_spp, spec.seed, fields)
+    cache = FirstHitCache(prepared.problem, sorted(prepared.targets), recipe.cache_spp, spec.seed, fields)
     return CachedFirstHits(method, cache, field_candidate=field_candidate, cached_lhs=cached_lhs)
 

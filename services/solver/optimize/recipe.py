@@ -158,6 +158,13 @@ class Recipe:
     #: ``step_units`` and ``uniform`` describe the scalars as loaded; after a remesh the run
     #: derives them again, by the same rules, for the new vertices (:mod:`.remeshing`)
     remesh: Remesh | None = None
+    #: how the method meets the camera: ``candidate`` (``path``: traced; ``field``: ``L_phi`` at
+    #: the first hits), ``first_hits`` (``fresh`` each iteration or ``cached`` once per job, at
+    #: ``cache_spp`` samples per pixel) and ``head`` (the many-parameter head replaces the method)
+    candidate: str = "path"
+    first_hits: str = "fresh"
+    cache_spp: int = 1
+    head: bool = False
 
     def blur_at(self, k: int) -> float:
         """The loss's blur at iteration ``k``, in pixels (0: none)."""
@@ -175,4 +182,6 @@ class Recipe:
                 "step_units": list(self.step_units) or None, "uniform": [list(s) for s in self.uniform] or None,
                 "blur": None if self.blur is None else self.blur.to_json(),
                 "remesh": None if self.remesh is None else self.remesh.to_json(),
+                "candidate": self.candidate, "first_hits": self.first_hits, "cache_spp": self.cache_spp,
+                "head": self.head,
                 "decisions": [asdict(d) for d in self.decisions], "warnings": list(self.warnings)}

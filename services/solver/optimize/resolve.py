@@ -275,7 +275,13 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
     stop = stop_rule(spec, optimizer, decide, not_before=remesh.at[-1] if remesh is not None else 0)
     blocks = _texture_blocks(spec, parameters, measures, decide) if parameters.has_textures else ()
     radiance, differential = _fields(spec, method, planned_for, effects, depth)
-    return Recipe(method=method, jacobian=spec.jacobian, fields_for=planned_for, depth=depth, effects=effects,
+    first_hits = spec.render.first_hits
+    if spec.jacobian == "differential-field" and first_hits != "cached" and planned_for in (None, method):
+        first_hits = "cached"
+        decide("first_hits", first_hits, "the Jacobian is dL_theta at the camera's first hits, traced once per job")
+    return Recipe(candidate=spec.render.candidate, first_hits=first_hits, cache_spp=spec.render.gradient_spp,
+                  head=spec.training.head is not None,
+                  method=method, jacobian=spec.jacobian, fields_for=planned_for, depth=depth, effects=effects,
                   layout=layout, steps=steps, batch=batch, stop=stop, decisions=tuple(decisions),
                   warnings=tuple(warnings), texture_blocks=blocks, radiance=radiance, differential=differential,
                   step_units=units, uniform=spans if optimizer == "adam" else (), blur=blur, remesh=remesh)
