@@ -1,4 +1,4 @@
-"""A short chaos run (:mod:`tests.support.chaos`): 3 jobs on 2 workers in Redis mode, one worker SIGKILLed
+"""A short chaos run (:mod:`harness.chaos`): 3 jobs on 2 workers in Redis mode, one worker SIGKILLed
 while it runs a job, then Redis killed and restarted empty while both workers are busy. Every job
 must succeed, none be lost, and each job's event history (events name the attempt that wrote them)
 must show one writer at a time: no attempt writes after its successor started."""

@@ -1,4 +1,4 @@
-"""Gauss-Newton steps (``services/solver/optimize/gauss_newton.py``): exact on a linear model,
+"""Gauss-Newton steps (``services/solver/optimize/optimizers/gauss_newton.py``): exact on a linear model,
 inside the trust region and the bounds, and in the loop for every kind of method.
 
 The linear model ``y = Σ_i p_i J_i`` stands for a scene whose image is linear in its scalars;

@@ -5,11 +5,13 @@
 // short-lived read token of that one job (every job document the API returns has one); the key
 // itself never goes into a URL.
 
+import { FINISHED } from "./statuses.js";   // served by the API from schemas.records.FINISHED
+
+export { FINISHED };
+
 const STORAGE = "ndrf.apiKey";
 let prompt = async () => { throw new Error("no API key prompt installed"); };
 let asking = null;                       // one prompt at a time, shared by concurrent requests
-
-export const FINISHED = new Set(["succeeded", "failed", "canceled"]);
 
 export function setKeyPrompt(fn) { prompt = fn; }
 export function apiKey() { return sessionStorage.getItem(STORAGE) || ""; }

@@ -1,19 +1,22 @@
 """The interface of a gradient method, documented once.
 
-A method estimates ``dy/dp`` of Eq. 10 for one sensor. It has two entry points, as Mitsuba's AD
-integrators do:
+A method estimates ``dy/dp`` of Eq. 10 for one sensor. It has two primitives, as Mitsuba's AD
+integrators have a backward and a forward mode:
 
-``loss_gradient(dz_dy)``  ``dz/dp = Σ_pixels dz/dy · dy/dp`` (Eq. 10), ``(P,)`` float64: what the loop
-                          calls every iteration. ``prb`` runs one adjoint pass whatever ``P``; the
-                          camera-hit methods contract each camera ray's derivative with ``dz/dy`` at
-                          its pixel, without forming per-scalar images (the forward mode of their
-                          one estimate, :mod:`.camera_hit`; its backward mode for a texture).
-``gradient_images()``              per-scalar gradient images ``dI/dp``, ``(P, H, W, 3)`` float32 (Eq. 3): the
-                          Jacobian of second-order steps, and what the loop writes on its images
-                          schedule and ``ndrf gradient`` writes.
+``loss_gradient(dz_dy)``  ``dz/dp = Σ_pixels dz/dy · dy/dp`` (Eq. 10), ``(P,)`` float64, the
+                          gradient of every iteration. ``prb`` runs one adjoint pass whatever ``P``;
+                          the camera-hit methods contract each camera ray's derivative with ``dz/dy``
+                          at its pixel, without forming per-scalar images (the forward mode of their
+                          one estimate, :mod:`.camera_hit`; its backward mode for a texture). The
+                          default contracts ``gradient_images``.
+``gradient_images()``     per-scalar gradient images ``dI/dp``, ``(P, H, W, 3)`` float32 (Eq. 3): the
+                          Jacobian of second-order steps, what the loop writes on its images
+                          schedule (:mod:`services.solver.optimize.images`) and what ``ndrf
+                          gradient`` writes (:mod:`services.solver.optimize.evaluate`).
 
-``candidate_and_gradient`` and ``candidate_gradient_and_images`` are what the loop calls: Sec. 5
-steps 2-5 for one view, without and with the Jacobian. Every method that traces paths takes the
+``candidate_and_gradient`` and ``candidate_gradient_and_images`` are what the loop calls
+(:mod:`services.solver.optimize.estimate`): Sec. 5 steps 2-5 for one view, without and with the
+Jacobian, built on the two primitives. Every method that traces paths takes the
 job's :class:`~services.solver.estimators.render.PathDepth` (there is no default depth).
 
 A method class declares its public ``name`` (a :class:`schemas.methods.Method`), the fields it can
@@ -92,7 +95,7 @@ class GradientMethod(ABC):
     def loss_gradient(self, problem: Problem, fields: Fields, dz_dy: np.ndarray, *, spp: int, seed: int,
                       sensor: int = 0) -> np.ndarray:
         """``dz/dp``, ``(P,)`` float64, for ``dz/dy`` of shape ``(H, W, 3)``. The default contracts
-        :meth:`images`; subclasses override it with something cheaper."""
+        :meth:`gradient_images`; subclasses override it with something cheaper."""
         return contract(self.gradient_images(problem, fields, spp=spp, seed=seed, sensor=sensor), dz_dy)
 
     def candidate_and_gradient(self, problem: Problem, fields: Fields, loss: Loss, *, spp: int, gradient_spp: int,
@@ -113,7 +116,7 @@ class GradientMethod(ABC):
                                       gradient_spp: int, seed: int, depth: PathDepth,
                                       sensor: int = 0) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
         """:meth:`candidate_and_gradient` plus the Jacobian ``dI/dp`` ``(P, H, W, 3)`` of the same
-        view (what a second-order step needs). The default adds :meth:`images` with the gradient's
+        view (what a second-order step needs). The default adds :meth:`gradient_images` with the gradient's
         own seed (the camera-hit methods then query the very rays ``dz/dp`` came from)."""
         from services.solver.seeds import derive_seed
 

@@ -5,6 +5,7 @@
 
 import { FINISHED, getJSON, postJSON } from "../api.js";
 import { clear, fmtDuration, fmtNum, h, problemText, statusBadge } from "../dom.js";
+import { poll } from "../poll.js";
 import { comparePanel } from "./experiment-compare.js";
 import { colorScale, legendOf, parallelCoordinates, xyChart } from "./experiment-charts.js";
 import { runsTable } from "./experiment-runs.js";
@@ -20,7 +21,7 @@ function card(title, testid, ...body) {
 export function experimentView(root, expId) {
   const base = `/v1/experiments/${encodeURIComponent(expId)}`;
   const state = { experiment: null, rows: [], curves: null, colorBy: null, xAxis: "seconds" };
-  let alive = true, source = null, timer = null, pending = null, lastSeq = 0;
+  let alive = true, source = null, pending = null, lastSeq = 0;
 
   const title = h("h1.job-title", "Experiment");
   const badge = h("span");
@@ -71,31 +72,31 @@ export function experimentView(root, expId) {
     card("Two runs side by side", "compare-card", compare.element));
 
   // ---------------------------------------------------------------- data
+  /** One read of the experiment, its runs and curves; false once it has finished (the poll pauses
+   * until an action or an event calls it again). */
   async function load() {
-    try {
-      const [experiment, rows, curves] = await Promise.all([getJSON(base), getJSON(`${base}/runs`), getJSON(`${base}/curves`)]);
-      if (!alive) return;
-      Object.assign(state, { experiment, rows, curves });
-      alert.hidden = true;
-      draw();
-      if (!source && !FINISHED.has(experiment.status)) follow();
-      clearTimeout(timer);
-      if (!FINISHED.has(experiment.status)) timer = setTimeout(load, 4000);
-    } catch (error) {
-      if (!alive) return;
-      if (error.status === 404) {
-        clear(root, h("div.card.empty-state", h("h2", "No such experiment"), h("p.mono", expId), h("a.btn", { href: "#/experiments" }, "Back")));
-        alive = false;
-        return;
-      }
-      alert.textContent = `Could not load the experiment: ${problemText(error)}`;
-      alert.hidden = false;
-      timer = setTimeout(load, 4000);
+    const [experiment, rows, curves] = await Promise.all([getJSON(base), getJSON(`${base}/runs`), getJSON(`${base}/curves`)]);
+    if (!alive) return false;
+    Object.assign(state, { experiment, rows, curves });
+    alert.hidden = true;
+    draw();
+    if (!source && !FINISHED.has(experiment.status)) follow();
+    return !FINISHED.has(experiment.status);
+  }
+
+  function loadFailed(error) {
+    if (error.status === 404) {
+      clear(root, h("div.card.empty-state", h("h2", "No such experiment"), h("p.mono", expId), h("a.btn", { href: "#/experiments" }, "Back")));
+      alive = false;
+      return false;
     }
+    alert.textContent = `Could not load the experiment: ${problemText(error)}`;
+    alert.hidden = false;
+    return true;
   }
 
   function reloadSoon() {
-    if (!pending) pending = setTimeout(() => { pending = null; if (alive) load(); }, 300);
+    if (!pending) pending = setTimeout(() => { pending = null; if (alive) poller.now(); }, 300);
   }
 
   function follow() {
@@ -126,7 +127,7 @@ export function experimentView(root, expId) {
     try {
       await postJSON(path, body);
       if (!source) follow();
-      await load();
+      await poller.now();
     } catch (error) {
       alert.textContent = problemText(error);
       alert.hidden = false;
@@ -228,11 +229,12 @@ export function experimentView(root, expId) {
 
   const resize = () => { if (state.experiment) draw(); };
   window.addEventListener("resize", resize);
-  load();
+  // re-read every 4 s while it runs, also in a hidden tab
+  const poller = poll(load, 4000, { hidden: true, onError: loadFailed });
   return () => {
     alive = false;
     source?.close();
-    clearTimeout(timer);
+    poller.stop();
     clearTimeout(pending);
     window.removeEventListener("resize", resize);
   };

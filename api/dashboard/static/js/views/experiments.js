@@ -1,16 +1,16 @@
 // #/experiments: every experiment with its progress over runs, refreshed every 2 s.
 
-import { getJSON } from "../api.js";
+import { FINISHED, getJSON } from "../api.js";
+import { poll } from "../poll.js";
 import { clear, fmtTime, h, problemText, statusBadge } from "../dom.js";
 
 const POLL_MS = 2000;
-const FINISHED_RUNS = ["succeeded", "failed", "canceled"];
 
 /** A stacked bar of the runs by status, and "done / total". */
 export function runsProgress(experiment) {
   const counts = experiment.counts || {};
   const total = experiment.runs || 0;
-  const done = FINISHED_RUNS.reduce((sum, s) => sum + (counts[s] || 0), 0);
+  const done = [...FINISHED].reduce((sum, s) => sum + (counts[s] || 0), 0);
   const segment = (status) => counts[status]
     ? h(`div.progress-bar.progress-${status}`, { style: { width: `${(100 * counts[status] / Math.max(total, 1)).toFixed(1)}%` },
       title: `${counts[status]} ${status}` }) : null;
@@ -34,7 +34,7 @@ function row(experiment) {
 }
 
 export function experimentsView(root) {
-  let timer = null, alive = true;
+  let alive = true;
   const body = h("tbody");
   const count = h("span.count");
   const banner = h("div.alert.alert-error", { hidden: true });
@@ -51,24 +51,17 @@ export function experimentsView(root) {
     h("div.card.card-flush", h("div.table-scroll", table), empty));
 
   async function refresh() {
-    clearTimeout(timer);
-    if (!document.hidden) {
-      try {
-        const page = await getJSON("/v1/experiments?limit=100");
-        if (!alive) return;
-        body.replaceChildren(...page.items.map(row));
-        count.textContent = String(page.items.length);
-        empty.hidden = page.items.length > 0;
-        table.hidden = page.items.length === 0;
-        banner.hidden = true;
-      } catch (error) {
-        if (!alive) return;
-        banner.textContent = `Could not load the experiments: ${problemText(error)}`;
-        banner.hidden = false;
-      }
-    }
-    if (alive) timer = setTimeout(refresh, POLL_MS);
+    const page = await getJSON("/v1/experiments?limit=100");
+    if (!alive) return;
+    body.replaceChildren(...page.items.map(row));
+    count.textContent = String(page.items.length);
+    empty.hidden = page.items.length > 0;
+    table.hidden = page.items.length === 0;
+    banner.hidden = true;
   }
-  refresh();
-  return () => { alive = false; clearTimeout(timer); };
+  const poller = poll(refresh, POLL_MS, { onError: (error) => {
+    banner.textContent = `Could not load the experiments: ${problemText(error)}`;
+    banner.hidden = false;
+  } });
+  return () => { alive = false; poller.stop(); };
 }

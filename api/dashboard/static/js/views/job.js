@@ -131,7 +131,6 @@ export function jobView(root, jobId) {
       iteration: seen((event) => { state.records.set(event.iteration, event); state.job.iteration = event.iteration; }),
       checkpoint: seen((event) => { state.checkpoint = event.iteration; }),
       warmup: seen((event) => { state.warmup = event; }),
-      auto: seen((event) => { state.warmup = { auto: event.candidates }; }),
       preparing: seen((event) => { state.warmup = { preparing: event.what }; }),
       resumed: seen((event) => {          // a new attempt recomputes the iterations after its checkpoint
         for (const k of [...state.records.keys()]) if (k >= event.iteration) state.records.delete(k);
@@ -253,11 +252,6 @@ export function jobView(root, jobId) {
       warmupBar.style.width = "0%";
       warmupText.dataset.steps = "0";   // no training step yet
       warmupText.textContent = `Preparing: ${event.preparing}`;
-      return;
-    }
-    if (event.auto) {                   // method "auto": the trial that picks the method runs first
-      warmupBar.style.width = "0%";
-      warmupText.textContent = `Choosing the method: timing ${event.auto.join(", ")} on this scene`;
       return;
     }
     const fraction = event.planned ? Math.min(1, event.steps / event.planned) : 0;

@@ -1,6 +1,7 @@
 // #/jobs: every job with its progress, refreshed every 2 s (the pages already shown, newest first).
 
 import { getJSON } from "../api.js";
+import { poll } from "../poll.js";
 import { usageStrip } from "./usage.js";
 import { clear, fmtDuration, fmtNum, fmtTime, h, maxAbsError, problemText, statusBadge } from "../dom.js";
 
@@ -39,11 +40,11 @@ function row(job) {
 }
 
 export function jobsView(root) {
-  let pages = 1, timer = null, alive = true, hasMore = false;
+  let pages = 1, alive = true, hasMore = false;
   const body = h("tbody");
   const count = h("span.count");
   const banner = h("div.alert.alert-error", { hidden: true });
-  const more = h("button.btn.btn-ghost", { type: "button", hidden: true, onclick: () => { pages += 1; refresh(); } },
+  const more = h("button.btn.btn-ghost", { type: "button", hidden: true, onclick: () => { pages += 1; poller.now(); } },
     "Show older jobs");
   const table = h("table.table.jobs-table", { dataset: { testid: "jobs-table" } },
     h("thead", h("tr", ["Status", "Job", "Method", "Scene", "Iterations", "Elapsed", "ETA", "Loss",
@@ -62,35 +63,28 @@ export function jobsView(root) {
     h("div.center", more));
 
   async function refresh() {
-    clearTimeout(timer);
-    if (!document.hidden) {
-      try {
-        const jobs = [];
-        let cursor = null;
-        for (let page = 0; page < pages; page++) {
-          const query = new URLSearchParams({ limit: String(PAGE) });
-          if (cursor) query.set("cursor", cursor);
-          const result = await getJSON(`/v1/jobs?${query}`);
-          jobs.push(...result.items);
-          cursor = result.next_cursor;
-          if (!cursor) break;
-        }
-        if (!alive) return;
-        hasMore = Boolean(cursor);
-        body.replaceChildren(...jobs.map(row));
-        count.textContent = `${jobs.length}${hasMore ? "+" : ""}`;
-        empty.hidden = jobs.length > 0;
-        table.hidden = jobs.length === 0;
-        more.hidden = !hasMore;
-        banner.hidden = true;
-      } catch (error) {
-        if (!alive) return;
-        banner.textContent = `Could not load the jobs: ${problemText(error)}`;
-        banner.hidden = false;
-      }
+    const jobs = [];
+    let cursor = null;
+    for (let page = 0; page < pages; page++) {
+      const query = new URLSearchParams({ limit: String(PAGE) });
+      if (cursor) query.set("cursor", cursor);
+      const result = await getJSON(`/v1/jobs?${query}`);
+      jobs.push(...result.items);
+      cursor = result.next_cursor;
+      if (!cursor) break;
     }
-    if (alive) timer = setTimeout(refresh, POLL_MS);
+    if (!alive) return;
+    hasMore = Boolean(cursor);
+    body.replaceChildren(...jobs.map(row));
+    count.textContent = `${jobs.length}${hasMore ? "+" : ""}`;
+    empty.hidden = jobs.length > 0;
+    table.hidden = jobs.length === 0;
+    more.hidden = !hasMore;
+    banner.hidden = true;
   }
-  refresh();
-  return () => { alive = false; clearTimeout(timer); usage.stop(); };
+  const poller = poll(refresh, POLL_MS, { onError: (error) => {
+    banner.textContent = `Could not load the jobs: ${problemText(error)}`;
+    banner.hidden = false;
+  } });
+  return () => { alive = false; poller.stop(); usage.stop(); };
 }

@@ -3,6 +3,7 @@
 
 import { getJSON } from "../api.js";
 import { h } from "../dom.js";
+import { poll } from "../poll.js";
 
 const POLL_MS = 10000;
 const SHOWN = [["stored_bytes", "Stored"], ["active_jobs", "Active jobs"], ["running_jobs", "Running"],
@@ -16,23 +17,19 @@ function amount(key, value) {
 
 export function usageStrip() {
   const strip = h("div.usage-strip", { dataset: { testid: "usage" }, hidden: true });
-  let timer = null, alive = true;
+  let alive = true;
   async function refresh() {
-    try {
-      const usage = await getJSON("/v1/usage");
-      if (!alive) return;
-      strip.replaceChildren(...SHOWN.map(([key, label]) => {
-        const quota = usage[key];
-        const full = quota.limit > 0 && quota.used >= quota.limit;
-        return h(`span.tag${full ? ".text-error" : ""}`, { title: quota.setting, dataset: { testid: `usage-${key}` } },
-          `${label}: ${amount(key, quota.used)} / ${quota.limit > 0 ? amount(key, quota.limit) : "no cap"}`);
-      }));
-      strip.hidden = false;
-    } catch (error) {
-      strip.hidden = true;     // an older API without /v1/usage: nothing to show
-    }
-    if (alive) timer = setTimeout(refresh, POLL_MS);
+    const usage = await getJSON("/v1/usage");
+    if (!alive) return;
+    strip.replaceChildren(...SHOWN.map(([key, label]) => {
+      const quota = usage[key];
+      const full = quota.limit > 0 && quota.used >= quota.limit;
+      return h(`span.tag${full ? ".text-error" : ""}`, { title: quota.setting, dataset: { testid: `usage-${key}` } },
+        `${label}: ${amount(key, quota.used)} / ${quota.limit > 0 ? amount(key, quota.limit) : "no cap"}`);
+    }));
+    strip.hidden = false;
   }
-  refresh();
-  return { element: strip, stop: () => { alive = false; clearTimeout(timer); } };
+  // an older API without /v1/usage: nothing to show
+  const poller = poll(refresh, POLL_MS, { hidden: true, onError: () => { strip.hidden = true; } });
+  return { element: strip, stop: () => { alive = false; poller.stop(); } };
 }
