@@ -16,7 +16,7 @@ generated block of the built-in ``pose-block``.
 * **tutorial loop**: Mitsuba's ``object_pose_estimation`` tutorial, generalised to the 6 pose
   scalars: ``mi.ad.Adam(lr=0.025)`` on the translation and on the Euler angles in units of 100
   degrees (the tutorial's scale of its angle), the vertices moved by ``mi.Transform4f`` about the
-  mesh's centre, ``prb_projective`` with Mitsuba's defaults (its guide included), 16 spp, both
+  mesh's centre, ``prb-projective`` with Mitsuba's defaults (its guide included), 16 spp, both
   views per iteration, the mean squared error summed over the views. It runs for the product's
   wall-clock time of the same seed (equal compute), at least 2 iterations. ``--loop-lr`` sweeps
   its learning rate (the best setting of the loop a user would write); ``--loop-against`` runs
@@ -148,7 +148,7 @@ def run_loop(job: dict, shape: str, seconds: float, folder: Path, lr: float = LO
     best = min(curve, key=lambda row: row[1] / 0.01 + row[2])
     return {"seconds": time.perf_counter() - started, "iterations": it, "final_error": final[1:3],
             "best_error": best[1:3], "best_iteration": best[0], "curve": curve,
-            "settings": {"integrator": "prb_projective (Mitsuba's defaults, guiding octree)", "spp": LOOP_SPP,
+            "settings": {"integrator": "prb-projective (Mitsuba's defaults, guiding octree)", "spp": LOOP_SPP,
                          "lr": lr, "optimizer": "mi.ad.Adam", "angle_scale_degrees": ANGLE_SCALE}}
 
 

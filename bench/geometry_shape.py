@@ -11,18 +11,18 @@ smooth-shaded icosphere of 642 vertices, 6 views), targets at 256 spp, towards
 * ``rounded-box``: the built-in rounded box (866 vertices on a cube's grid: another topology, as
   the tutorial's Suzanne is to its icosphere), its corners at the sphere's radius.
 
-* **product**: the default job (``auto``: ``direct_projective``, uniform Adam on the LargeSteps
+* **product**: the default job (``auto``: ``direct-projective``, uniform Adam on the LargeSteps
   coordinates, every view at 16 spp per iteration, λ 19), with ``examples/shape.json``'s learning
   rate 0.3 (in the sphere's radius), ``--iterations`` iterations, run in-process as ``ndrf run``
   runs it; with ``--remesh-at F`` its ``geometry.remesh_at`` is ``[round(F x iterations)]``. Its
   Chamfer distance is its answer's (``summary.json``).
 * **tutorial loop**: Mitsuba's ``shape_optimization`` tutorial: ``mi.ad.LargeSteps`` with λ 25,
   ``mi.ad.Adam(lr=0.1, uniform=True)`` on ``u``, one step per view (the vertices written from
-  ``u`` before each render), the L1 loss, ``direct_projective`` with ``sppi: 0`` (the tutorial's
+  ``u`` before each render), the L1 loss, ``direct-projective`` with ``sppi: 0`` (the tutorial's
   first stage), 16 spp, the same targets. With ``--remesh-at F``, after ``F`` of its seconds it
   remeshes as the tutorial does (``gpytoolbox.remesh_botsch``, 5 passes, to half the mean edge
   length), starts a new ``LargeSteps`` and ``Adam`` and, as the tutorial's second stage, renders
-  with ``direct_projective``'s defaults (``--loop-guiding``: its guiding) and steps once per
+  with ``direct-projective``'s defaults (``--loop-guiding``: its guiding) and steps once per
   pass over the views. It runs for the product's wall-clock time of the same seed (equal
   compute; the seconds its Chamfer distances take are not counted), at least one pass over the
   views; its answer is its last ``u``.
@@ -135,7 +135,7 @@ def run_loop(job: dict, seconds: float, guiding: str | None = None, remesh_at: f
         it += 1
     return {"seconds": spent, "iterations": it, "chamfer": curve[-1][1], "vertices": len(vertices),
             "best_chamfer": min(row[1] for row in curve), "curve": curve,
-            "settings": {"integrator": "direct_projective (sppi 0" + (
+            "settings": {"integrator": "direct-projective (sppi 0" + (
                 f"; after the remesh {'guiding ' + guiding if guiding else 'its defaults'})" if remesh_at is not None
                 else ")"), "spp": LOOP_SPP, "lr": LOOP_LR, "lambda": LOOP_LAMBDA, "loss": "l1",
                 "optimizer": "mi.ad.Adam(uniform=True), one step per view" + (

@@ -13,7 +13,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from schemas.methods import METHOD_HELP, Method
+from schemas.methods import METHOD_HELP, OLDER_METHOD_NAMES, Method
 from schemas.solver import TrainingConfig
 
 
@@ -466,6 +466,13 @@ class JobSpec(_Strict):
             exclude["targets"] = {"synthetic": {"meshes": {s: names for s, names in later.items() if names}}
                                   if meshes else {"meshes"}}
         return hashlib.sha256(self.model_dump_json(exclude=exclude).encode()).hexdigest()[:16]
+
+    @field_validator("method", mode="before")
+    @classmethod
+    def _older_method_names(cls, value):
+        """A job file or job folder of an older version names the projective methods with an
+        underscore (``prb_projective``): read as today's name."""
+        return OLDER_METHOD_NAMES.get(value, value) if isinstance(value, str) else value
 
     @field_validator("adam_betas")
     @classmethod

@@ -18,8 +18,8 @@ class Method(StrEnum):
     ``radiance-cache``  the same bounce with ``L_phi`` but indirect ``dL = 0`` (Sec. 7.1: biased)
     ``direct``          the same bounce with emitters only (biased, no field)
     ``prb``             Mitsuba's Path Replay Backpropagation integrator (the reference)
-    ``prb_projective``  ``prb`` with projective sampling of moving silhouettes: geometry (a pose)
-    ``direct_projective``  the same, direct illumination only
+    ``prb-projective``  ``prb`` with projective sampling of moving silhouettes: geometry (a pose)
+    ``direct-projective``  the same, direct illumination only
     """
 
     NDRF_LHS = "ndrf-lhs"
@@ -27,9 +27,12 @@ class Method(StrEnum):
     RADIANCE_CACHE = "radiance-cache"
     DIRECT = "direct"
     PRB = "prb"
-    PRB_PROJECTIVE = "prb_projective"
-    DIRECT_PROJECTIVE = "direct_projective"
+    PRB_PROJECTIVE = "prb-projective"
+    DIRECT_PROJECTIVE = "direct-projective"
 
+
+#: The names of older versions, read as today's (one spelling per method: hyphens, as ``ndrf-lhs``).
+OLDER_METHOD_NAMES = {"prb_projective": Method.PRB_PROJECTIVE.value, "direct_projective": Method.DIRECT_PROJECTIVE.value}
 
 #: The choice a job may leave to the product (the default): no trial before the first iteration;
 #: the recipe follows from the scene and the job, and the run's own iterations adjust its batch
@@ -39,8 +42,8 @@ AUTO = "auto"
 METHOD_HELP = (
     "Gradient method: ndrf-lhs (dL_theta at the camera hit, Eq. 11), ndrf-rhs (one bounce with "
     "dL_theta and L_phi at the next hit, Sec. 6.3), radiance-cache (L_phi, indirect dL = 0), direct "
-    "(emitters only), prb (Mitsuba's Path Replay Backpropagation: unbiased), prb_projective / "
-    "direct_projective (Mitsuba's projective integrators: the methods for geometry, a shape's pose) or auto "
+    "(emitters only), prb (Mitsuba's Path Replay Backpropagation: unbiased), prb-projective / "
+    "direct-projective (Mitsuba's projective integrators: the methods for geometry, a shape's pose) or auto "
     "(the default: prb, or a projective integrator for geometry, with the optimizer and batch chosen for the job; "
     "plan.json's recipe says what ran and why)."
 )

@@ -48,7 +48,7 @@ def test_a_texture_without_a_target_has_no_psnr(tmp_path):
 
 def test_a_shape_row_names_the_mesh_file_and_its_chamfer_distance(tmp_path):
     """Failed (an empty table) before meshes had rows."""
-    summary = {"method": "direct_projective", "status": "succeeded", "iterations": 40, "seconds": 37.0,
+    summary = {"method": "direct-projective", "status": "succeeded", "iterations": 40, "seconds": 37.0,
                "scalars": [], "init": [], "final": [], "target": None,
                "meshes": {"sphere": {"vertices": 2414, "faces": 4824, "chamfer": 0.006849, "file": "final/sphere.ply"},
                           "other": {"vertices": 8, "faces": 12, "chamfer": None, "file": "final/other.ply"}}}

@@ -137,7 +137,7 @@ def test_auto_takes_a_projective_method_and_uniform_adam(sphere):
     _, parameters = sphere
     measures = SimpleNamespace(missing_energy=lambda depth: 0.0)
     recipe = resolve(JobSpec.model_validate(_job()), parameters, 6, measures)
-    assert recipe.method == "direct_projective" and recipe.steps.optimizer == "adam"
+    assert recipe.method == "direct-projective" and recipe.steps.optimizer == "adam"
     assert recipe.uniform == ((0, parameters.n),) and recipe.batch.views == 6
     with pytest.raises(InvalidJob, match="forward render"):
         resolve(JobSpec.model_validate(_job(optimizer="levenberg-marquardt")), parameters, 6, measures)
@@ -166,7 +166,7 @@ def test_target_meshes_in_the_schema():
 
 
 def test_the_gradient_matches_finite_differences(mi, sphere):
-    """``dz/du`` of ``direct_projective`` (adjoint, 64 spp, two seeds, through the Cholesky solve)
+    """``dz/du`` of ``direct-projective`` (adjoint, 64 spp, two seeds, through the Cholesky solve)
     along a smooth direction ``δu`` (the vertices of the +x half pushed out along x, by a quarter
     of the radius at most) against central differences of the loss at ``u ± h δu`` (``h`` = 0.05:
     about a third of a pixel at the rim; renders at 1024 spp, same seeds on both sides), 16x16,
@@ -214,7 +214,7 @@ def test_the_gradient_matches_finite_differences(mi, sphere):
 
 
 def test_a_shape_job_lowers_the_chamfer_distance(tmp_path):
-    """The default shape job (auto: direct_projective, uniform Adam) on ``shape-sphere`` at 16x16:
+    """The default shape job (auto: direct-projective, uniform Adam) on ``shape-sphere`` at 16x16:
     the Chamfer distance to the target falls by a fifth or more over 8 iterations (measured, point
     to surface since #34: 0.035 to 0.012; the answer, averaged over its window, 0.016; it was 0.047
     to 0.028 vertex to vertex); the final mesh is written as ``final/sphere.ply`` with the mesh's
@@ -243,7 +243,7 @@ def test_a_shape_job_lowers_the_chamfer_distance(tmp_path):
     assert [int(p.parent.name) for p in silhouettes] == written
     plan = json.loads((tmp_path / "job" / "plan.json").read_text())
     assert plan["scalars"] == [] and plan["shapes"]["sphere"]["chamfer"] == pytest.approx(distances[0], rel=1e-6)
-    assert plan["recipe"]["method"] == "direct_projective" and plan["recipe"]["optimizer"] == "adam"
+    assert plan["recipe"]["method"] == "direct-projective" and plan["recipe"]["optimizer"] == "adam"
 
 
 def test_mesh_snapshots_cross_the_sandbox_pipe():
@@ -285,7 +285,7 @@ def test_per_scalar_gradient_images_of_a_shape_job_are_refused(mi):
     from services.solver.optimize.evaluate import evaluate_gradient
 
     with pytest.raises(InvalidJob, match="1926 for a mesh's vertices"):
-        evaluate_gradient(JobSpec.model_validate(_job()), "direct_projective", spp=1)
+        evaluate_gradient(JobSpec.model_validate(_job()), "direct-projective", spp=1)
 
 
 def test_a_mesh_is_posed_or_reshaped_not_both(sphere):

@@ -38,9 +38,9 @@ samples per pixel). The rules and what they rest on (``bench/results/``):
   curvature), every view at :data:`TEXTURE_SPP` spp per iteration.
 * **Geometry** (a pose, :mod:`services.solver.scene.geometry`): only Mitsuba's projective
   integrators differentiate a moving silhouette; every other method refuses it with the reason.
-  ``auto`` takes ``direct_projective`` where direct light is all but :data:`MISSING_ENERGY` of the
+  ``auto`` takes ``direct-projective`` where direct light is all but :data:`MISSING_ENERGY` of the
   image (measured, :func:`~services.solver.estimators.render.missing_energy`), else
-  ``prb_projective``; Levenberg-Marquardt while its Jacobian costs at most
+  ``prb-projective``; Levenberg-Marquardt while its Jacobian costs at most
   :data:`MAX_GEOMETRY_RENDERS` forward renders per view (one per pose scalar), every view at
   :data:`GEOMETRY_SPP` spp per iteration (the boundary term at 1 spp is noise; Mitsuba's pose
   tutorial renders 16), and steps measured in the shape's size (:meth:`ParameterSet.step_units
@@ -108,7 +108,7 @@ GEOMETRY_SPP = 16
 #: ``auto`` takes Levenberg-Marquardt on geometry while its Jacobian costs at most this many forward
 #: renders per view (two shapes' poses).
 MAX_GEOMETRY_RENDERS = 12
-#: The path depth of direct illumination (emitters seen and one bounce), what ``direct_projective`` renders.
+#: The path depth of direct illumination (emitters seen and one bounce), what ``direct-projective`` renders.
 DIRECT_DEPTH = PathDepth(2, None)
 #: ``auto`` trains a field (``ndrf-lhs``) in a closed scene for at most this many scalars (its
 #: ``dL_theta`` has an output per scalar and channel; the closed rooms measured have six).

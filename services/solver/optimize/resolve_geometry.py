@@ -27,13 +27,13 @@ class Measures(Protocol):
 def geometry_method(spec: JobSpec, measures: Measures, decide, *, direct: PathDepth, limit: float) -> str:
     """The method of a job that moves a shape: the job's, when it can differentiate a moving
     silhouette (else :class:`InvalidJob` with the reason), or ``auto``'s projective integrator:
-    ``direct_projective`` where paths longer than ``direct`` carry at most ``limit`` of the light."""
+    ``direct-projective`` where paths longer than ``direct`` carry at most ``limit`` of the light."""
     if spec.method != AUTO:
         refusal = method_class(str(spec.method)).geometry_refusal
         if refusal is not None:
             raise InvalidJob("method", f"{spec.method} cannot optimize geometry (a shape's pose or vertices): "
                                        f"{refusal}; use "
-                                       f"prb_projective or direct_projective (or method auto)")
+                                       f"prb-projective or direct-projective (or method auto)")
         if spec.jacobian == "differential-field":
             raise InvalidJob("jacobian", "jacobian 'differential-field' is dL_theta's, which has no boundary term "
                                          "for moving silhouettes: geometry takes the method's own Jacobian")

@@ -15,7 +15,7 @@ Mitsuba's pose tutorial does to the bunny's ``vertex_positions``)::
 so the shape's new ``to_world`` is ``D · M`` with ``M`` the file's own and the pose's matrix
 ``D = T(c + t) · R · T(-c)`` (:func:`pose_matrix`). The vertices are computed in Dr.Jit from the
 pose's scalars, so the gradient of a render reaches them through Mitsuba's projective integrators
-(``prb_projective``, ``direct_projective``), which differentiate the moving silhouettes.
+(``prb-projective``, ``direct-projective``), which differentiate the moving silhouettes.
 
 A pose is reported as ``D`` (4x4, row-major) and as the Mitsuba XML ``<transform>`` a user pastes
 back into the shape (:func:`transform_xml`): its operations come after the file's own.

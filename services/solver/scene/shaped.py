@@ -5,7 +5,7 @@ The sphere (``sphere``) is a mesh the project generates (no file): an icosphere 
 1,280 triangles), diffuse grey, under a constant environment and an area light, seen by
 :data:`VIEWS` cameras of 32x32 around it. Its ``sphere.vertex_positions`` is what a shape job
 recovers (:mod:`.shape`). Nothing in the scene reflects light onto it (it is convex, and there is
-no floor), so direct illumination is its whole image and ``auto`` takes ``direct_projective``.
+no floor), so direct illumination is its whole image and ``auto`` takes ``direct-projective``.
 
 A synthetic target shape is a mesh deformed (:func:`deform`: a smooth radial bump, then a scaling
 per axis, about the centre of its bounding box): the shape's own mesh, a mesh of a file, or one the

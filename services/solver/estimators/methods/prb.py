@@ -138,7 +138,7 @@ class Prb(GradientMethod):
     uses = frozenset()
     geometry_refusal: ClassVar[str | None] = (
         "Mitsuba's prb has no boundary term for moving silhouettes (its documentation: not for geometry); "
-        "prb_projective or direct_projective differentiate a pose")
+        "prb-projective or direct-projective differentiate a pose")
     #: the Mitsuba integrator's type
     integrator_type = "prb"
     #: whether forward mode is pushed from the parameters before the render (:func:`push_tangents`)

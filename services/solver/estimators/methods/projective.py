@@ -1,4 +1,4 @@
-"""``prb_projective`` and ``direct_projective``: Mitsuba's projective-sampling integrators (Zhang et
+"""``prb-projective`` and ``direct-projective``: Mitsuba's projective-sampling integrators (Zhang et
 al. 2023, "Projective Sampling for Differentiable Rendering of Geometry"), the methods for geometry.
 
 A render's derivative with respect to a shape's position has two parts: the *interior* term, the
@@ -8,9 +8,9 @@ The boundary term is an integral over the visibility discontinuities; these inte
 by projecting paths onto the silhouettes of the scene's shapes (``sppp`` primary, ``sppi``
 indirect samples) and add it to the interior term (``sppc``); each defaults to the render's spp.
 
-``prb_projective``    every bounce (Path Replay Backpropagation with the boundary terms): the job's
+``prb-projective``    every bounce (Path Replay Backpropagation with the boundary terms): the job's
                       :class:`~services.solver.estimators.render.PathDepth`
-``direct_projective`` direct illumination only (emitters seen directly and one bounce): exact
+``direct-projective`` direct illumination only (emitters seen directly and one bounce): exact
                       where the scene's light takes no second bounce, else biased (``auto``
                       chooses it only where the light of longer paths is negligible)
 
