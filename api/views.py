@@ -23,6 +23,8 @@ def job_public(record: JobRecord, files: JobFiles, settings: Settings, *, mint_t
     values = (latest.get("estimate") or latest["updated_parameters"]) if latest else plan.get("init")
     errors = latest.get("standard_error") if latest else None
     target = plan.get("target_values")
+    estimate = dict(zip(labels, values)) if labels and values else None
+    truth = dict(zip(labels, target)) if labels and target else None
     metrics = {k: latest.get(k) for k in METRICS if k in latest} if latest else None
     elapsed = eta = None
     if record.started:
@@ -37,9 +39,9 @@ def job_public(record: JobRecord, files: JobFiles, settings: Settings, *, mint_t
     return JobPublic(
         id=record.id, name=record.name, status=record.status, method=record.method, scene=record.scene,
         created=record.created, updated=record.updated, iteration=record.iteration, iterations=record.iterations,
-        attempts=record.attempts, parameters=dict(zip(labels, values)) if labels and values else None,
+        attempts=record.attempts, estimate=estimate, parameters=estimate,
         standard_error=dict(zip(labels, errors)) if labels and errors else None,
-        target=dict(zip(labels, target)) if labels and target else None, metrics=metrics, plan=plan or None,
+        target_values=truth, target=truth, metrics=metrics, plan=plan or None,
         error=record.error, field=record.field, elapsed_seconds=elapsed, eta_seconds=eta,
         experiment=record.experiment, varied=record.varied, read_token=token,
         images_requested=record.images_requested,

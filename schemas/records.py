@@ -141,13 +141,18 @@ class JobPublic(BaseModel):
     iteration: int | None = Field(None, description="Last completed iteration (0-based), if any.")
     iterations: int = Field(description="Iterations requested.")
     attempts: int = Field(0, description="Attempts so far (a worker that dies leaves the job to another).")
-    parameters: dict[str, float] | None = Field(None, description="The answer so far, by scalar label: the estimate of "
-                                                                   "the latest iteration (services/solver/optimize/"
-                                                                   "answer.py).")
+    estimate: dict[str, float] | None = Field(None, description="The answer so far, by scalar label: the estimate "
+                                              "of the latest iteration (services/solver/optimize/answer.py), the "
+                                              "initial values before the first.")
     standard_error: dict[str, float] | None = Field(None, description="The standard error of each scalar of "
-                                                                      "parameters, by label (null while too few "
+                                                                      "estimate, by label (null while too few "
                                                                       "iterations were seen).")
-    target: dict[str, float] | None = Field(None, description="Target values (synthetic targets only).")
+    target_values: dict[str, float] | None = Field(None, description="Target values, by scalar label (synthetic "
+                                                   "targets only).")
+    parameters: dict[str, float] | None = Field(None, deprecated="the same as estimate; removed in /v2",
+                                                description="Deprecated: the same as estimate.")
+    target: dict[str, float] | None = Field(None, deprecated="the same as target_values; removed in /v2",
+                                            description="Deprecated: the same as target_values.")
     metrics: dict[str, Any] | None = Field(None, description="Latest iteration: loss, residual norms, seconds per "
                                                               "phase, sanitized sample counts, the texture "
                                                               "summaries of a texture job.")

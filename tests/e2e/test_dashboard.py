@@ -268,7 +268,7 @@ def test_upload_a_scene_folder_and_a_target_photograph(page, api, tmp_path):
                            timeout=60_000)
     page.wait_for_function("document.querySelector('[data-testid=target-image]').naturalWidth === 16")
     job = api.json("GET", f"/v1/jobs/{page.url.rsplit('/', 1)[1]}")[2]
-    assert job["scene"] == "xml" and job["method"] == "direct" and job["target"] is None
+    assert job["scene"] == "xml" and job["method"] == "direct" and job["target_values"] is None
     assert page.get_by_test_id("parameter-error").text_content() == "—"               # no known target
     page.screenshot(path=tmp_path / "upload-job.png", full_page=True)
 

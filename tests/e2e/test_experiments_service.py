@@ -297,7 +297,7 @@ def test_a_pose_and_an_albedo_run_in_one_experiment_through_the_service(embedded
     assert experiment["status"] == "succeeded", experiment
     runs = [run["job"] for run in api.json("GET", f"/v1/experiments/{accepted['id']}/runs")[2]]
     pose, albedo = (api.json("GET", f"/v1/jobs/{job}")[2] for job in runs)
-    assert pose["plan"]["recipe"]["method"].endswith("_projective") and "block.to_world.rotate[1]" in pose["parameters"]
+    assert pose["plan"]["recipe"]["method"].endswith("-projective") and "block.to_world.rotate[1]" in pose["estimate"]
     status, _, png = api.request("GET", f"/v1/jobs/{pose['id']}/iterations/0/silhouette.png")
     assert status == 200 and png.startswith(b"\x89PNG")
     status, _, poses = api.json("GET", f"/v1/jobs/{pose['id']}/final/poses.json")

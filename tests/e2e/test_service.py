@@ -35,6 +35,9 @@ def test_embedded_submit_stream_succeed_and_fetch_images(tmp_path, store_env):
         assert job["status"] == "succeeded" and job["iteration"] == 5 and job["plan"]["method"] == "ndrf-lhs"
         _, _, records = api.json("GET", f"/v1/jobs/{job_id}/iterations")
         assert [r["iteration"] for r in records] == list(range(6))
+        # one name for the answer from the record to the API (#45); parameters, target: deprecated copies
+        assert list(job["estimate"].values()) == records[-1]["estimate"] and job["parameters"] == job["estimate"]
+        assert job["target_values"] == job["target"] and len(job["target_values"]) == 3
         status, headers, png = api.request("GET", f"/v1/jobs/{job_id}/iterations/5/gradients/0.png")
         assert status == 200 and headers["content-type"] == "image/png" and png[:4] == b"\x89PNG"
         status, _, npy = api.request("GET", f"/v1/jobs/{job_id}/iterations/5/gradients/2.npy")

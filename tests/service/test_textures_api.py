@@ -51,7 +51,7 @@ def test_texture_files_are_served(mi, tmp_path):
         assert client.get(f"/v1/jobs/{JOB}/iterations/1/textures/other.npy").status_code == 404
         assert client.get(f"/v1/jobs/{JOB}/final/{KEY}.exe").status_code == 422
         public = client.get(f"/v1/jobs/{JOB}").json()
-        assert public["parameters"] is None and public["metrics"]["textures"][KEY]["shape"] == [64, 64, 3]
+        assert public["estimate"] is None and public["metrics"]["textures"][KEY]["shape"] == [64, 64, 3]
         assert 0.0 < public["metrics"]["textures"][KEY]["psnr"] < 60.0
         assert client.get(f"/v1/jobs/{JOB}/final/..%2Fspec.json.npy").status_code in (404, 422)
         targets = tmp_path / "store" / JOB / "targets"

@@ -19,7 +19,7 @@ function progress(job) {
 function finalError(job) {
   if (job.error) return h("span.text-error", { title: job.field ? `${job.field}: ${job.error}` : job.error },
     job.error.length > 60 ? `${job.error.slice(0, 57)}…` : job.error);
-  const worst = maxAbsError(job.parameters, job.target);
+  const worst = maxAbsError(job.estimate, job.target_values);
   return worst === null ? h("span.muted", "—") : h("span.num", { title: "max |parameter − target|" }, fmtNum(worst, 3));
 }
 
