@@ -48,7 +48,7 @@ def _progress_hooks(total: int):
 
 def _texture_row(key: str, files: dict, out: Path, init: dict | None) -> tuple[list[str], str]:
     """A texture's row of the final table (its mean per channel: initial from the plan's summary
-    ``init``, final, target) and a caption line (the file, and the PSNR against a synthetic
+    ``init``, estimate, target) and a caption line (the file, and the PSNR against a synthetic
     target), from the job folder ``out``."""
     import numpy as np
 
@@ -78,13 +78,13 @@ def _final_table(summary: dict, out: Path):
 
     table = Table(title=f"{summary['method']}: {summary['status']} after {summary['iterations']} iterations "
                         f"({summary['seconds']:.0f} s)")
-    for column in ("parameter", "init", "final ± standard error", "target"):
+    for column in ("parameter", "init", "estimate ± standard error", "target"):
         table.add_column(column, justify="left" if column == "parameter" else "right")
     scalars = summary["scalars"] or []
     targets = summary.get("target_values") or [math.nan] * len(scalars)
     errors = summary.get("standard_error") or [None] * len(scalars)
-    for label, init, final, error, target in zip(scalars, summary["init"], summary["estimate"], errors, targets):
-        value = f"{final:.4f}" + ("" if error is None else f" ± {error:.4f}")
+    for label, init, estimate, error, target in zip(scalars, summary["init"], summary["estimate"], errors, targets):
+        value = f"{estimate:.4f}" + ("" if error is None else f" ± {error:.4f}")
         table.add_row(label, f"{init:.4f}", value, "-" if target is None or math.isnan(target) else f"{target:.4f}")
     captions = []
     textures = summary.get("textures") or {}
@@ -103,7 +103,7 @@ def _final_table(summary: dict, out: Path):
     stopped = summary.get("stopped") or {}
     if summary.get("estimate_window"):
         first, last = summary["estimate_window"]
-        captions.append(f"final: the estimate from iterations {first} to {last} ({summary['estimate_kind']}); the last "
+        captions.append(f"estimate: from iterations {first} to {last} ({summary['estimate_kind']}); the last "
                         f"iterate is summary.json's last_iterate")
     if stopped.get("reason"):
         captions.append(f"stopped: {stopped['reason']}")

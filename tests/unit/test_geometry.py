@@ -13,6 +13,7 @@ import pytest
 from schemas.errors import InvalidJob
 from schemas.job import JobSpec
 from services.solver.optimize.resolve import resolve
+from services.solver.optimize.validate import check_geometry
 from services.solver.scene.geometry import pose_matrix, refusal, rotation_matrix, split_key, transform_xml
 
 POSE = ["block.to_world.translate", "block.to_world.rotate"]
@@ -68,9 +69,15 @@ def test_keys_and_matrices():
 
 @pytest.mark.parametrize("method", ["ndrf-lhs", "ndrf-rhs", "radiance-cache", "direct", "prb"])
 def test_methods_without_a_boundary_term_refuse_geometry_with_the_reason(method):
+    """Refused by the validate stage, before resolve decides anything (resolve raises nothing)."""
     with pytest.raises(InvalidJob, match="boundary term for moving silhouettes") as raised:
-        resolve(_spec(method=method), _parameters(), 2, Measures())
+        check_geometry(_spec(method=method), geometry=True, mesh_scalars=0)
     assert raised.value.field == "method"
+    with pytest.raises(InvalidJob, match="dL_theta's, which has no boundary term") as raised:
+        check_geometry(_spec(method="prb-projective", jacobian="differential-field"), geometry=True, mesh_scalars=0)
+    assert raised.value.field == "jacobian"
+    check_geometry(_spec(method="prb-projective"), geometry=True, mesh_scalars=0)
+    check_geometry(_spec(method=method), geometry=False, mesh_scalars=0)   # no shape moves: any method
 
 
 def test_auto_takes_a_projective_integrator_and_levenberg_marquardt_with_every_channel():

@@ -139,10 +139,12 @@ def test_auto_takes_a_projective_method_and_uniform_adam(sphere):
     recipe = resolve(JobSpec.model_validate(_job()), parameters, 6, measures)
     assert recipe.method == "direct-projective" and recipe.steps.optimizer == "adam"
     assert recipe.uniform == ((0, parameters.n),) and recipe.batch.views == 6
+    from services.solver.optimize.validate import validate
+
     with pytest.raises(InvalidJob, match="forward render"):
-        resolve(JobSpec.model_validate(_job(optimizer="levenberg-marquardt")), parameters, 6, measures)
+        validate(JobSpec.model_validate(_job(optimizer="levenberg-marquardt")), parameters)
     with pytest.raises(InvalidJob, match="boundary term"):
-        resolve(JobSpec.model_validate(_job(method="prb")), parameters, 6, measures)
+        validate(JobSpec.model_validate(_job(method="prb")), parameters)
 
 
 def test_uniform_adam_takes_one_step_scale_per_span():

@@ -53,11 +53,11 @@ def build(prepared: Prepared, recipe: Recipe) -> Built:
     if isinstance(method, Prb):
         method.freeze = spec.render.freeze
         method.fit_views(len(prepared.targets), len(channel_groups(list(problem.layout.channels))))
-    if recipe.head:  # the many-parameter head (checked by setup.check: ndrf-rhs, first order)
+    if recipe.head:  # the many-parameter head (checked by the validate stage: ndrf-rhs, first order)
         from services.solver.estimators.methods.head import NdrfHead
 
         method = NdrfHead()
-    hybrid = recipe.fields_for is not None and recipe.fields_for != recipe.method
+    hybrid = recipe.hybrid
     field_user = make_method(recipe.fields_for, problem.effects, recipe.depth) if hybrid and recipe.fields_for else method
     trainer = None
     if recipe.radiance or recipe.differential:

@@ -166,6 +166,18 @@ class Recipe:
     cache_spp: int = 1
     head: bool = False
 
+    @staticmethod
+    def is_hybrid(method: str, fields_for: str | None) -> bool:
+        """Whether the trained fields serve another method than the gradient's ``method``: the
+        Jacobian of the second-order steps is ``dL_theta`` (of ``ndrf-lhs``) at cached camera hits
+        while ``method`` gives the candidate and ``dz/dp`` (the hybrid)."""
+        return fields_for is not None and fields_for != method
+
+    @property
+    def hybrid(self) -> bool:
+        """:meth:`is_hybrid` of this recipe's method and fields."""
+        return self.is_hybrid(self.method, self.fields_for)
+
     def blur_at(self, k: int) -> float:
         """The loss's blur at iteration ``k``, in pixels (0: none)."""
         return 0.0 if self.blur is None else self.blur.at(k)
@@ -173,7 +185,7 @@ class Recipe:
     def to_json(self) -> dict:
         return {"method": self.method, "optimizer": self.steps.optimizer, "jacobian": self.jacobian,
                 "fields_for": self.fields_for, "views": self.batch.views, "spp": self.batch.spp,
-                "gradient_spp": self.batch.gradient_spp, "adaptive_views": self.batch.grows,
+                "gradient_spp": self.batch.gradient_spp, "grows": self.batch.grows,
                 "max_growth": self.batch.max_growth, "depth": self.depth.describe(),
                 "trust_growth": self.steps.trust_growth, "trust_start": self.steps.trust_start,
                 "curvature": self.steps.curvature if self.steps.second_order else None,

@@ -60,7 +60,6 @@ from typing import Protocol
 
 import numpy as np
 
-from schemas.errors import InvalidJob
 from schemas.job import JobSpec
 from schemas.methods import AUTO, Method
 from services.solver.estimators.layout import DerivativeLayout
@@ -243,11 +242,14 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
                             f"biased; leave render.max_depth unset for unbounded paths with Russian roulette")
     if parameters.has_geometry and (flat := flat_shading_warning(parameters.flat_meshes())) is not None:
         warnings.append(flat)
-    planned_for = fields_method(spec, method) if not parameters.has_geometry else None
-    effects = None
-    if planned_for is not None:
-        effects = choose_effects(measures.facts(), planned_for, method_class(planned_for).uses, spec.effects,
-                               spec.training.delta_depth)
+    planned_for, effects = _planned(spec, method, parameters, measures)
+    if spec.jacobian == "differential-field" and effects is not None and not effects.differential_field.value:
+        decide("jacobian", "method", f"jacobian 'differential-field' reads dL_theta, which this scene does not need "
+                                     f"({effects.differential_field.reason}): the second-order steps take the "
+                                     f"method's own Jacobian")
+        spec = spec.model_copy(update={"jacobian": "method"})
+        planned_for, effects = _planned(spec, method, parameters, measures)
+    if effects is not None:
         warnings += effects.warnings
     layout = derivative_layout(parameters, effects, spec.effects.merge_channels)
     units = tuple(float(u) for u in parameters.step_units()) if parameters.has_geometry else ()
@@ -276,7 +278,7 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
     blocks = _texture_blocks(spec, parameters, measures, decide) if parameters.has_textures else ()
     radiance, differential = _fields(spec, method, planned_for, effects, depth)
     first_hits = spec.render.first_hits
-    if spec.jacobian == "differential-field" and first_hits != "cached" and planned_for in (None, method):
+    if spec.jacobian == "differential-field" and first_hits != "cached" and not Recipe.is_hybrid(method, planned_for):
         first_hits = "cached"
         decide("first_hits", first_hits, "the Jacobian is dL_theta at the camera's first hits, traced once per job")
     return Recipe(candidate=spec.render.candidate, first_hits=first_hits, cache_spp=spec.render.gradient_spp,
@@ -298,10 +300,18 @@ def _fields(spec: JobSpec, method: str, planned_for: str | None, effects: Effect
     if planned_for is None:
         return field_candidate, False
     radiance, differential = trained_fields(make_method(planned_for, effects, depth), effects, radiance=field_candidate)
-    if spec.jacobian == "differential-field" and not differential:
-        raise InvalidJob("jacobian", "jacobian 'differential-field' needs dL_theta, and the effects turned it off "
-                                     "(effects.differential_field, or no light bouncing between surfaces)")
     return radiance, differential
+
+
+def _planned(spec: JobSpec, method: str, parameters: Parameters, measures: Measures) -> tuple[str | None,
+                                                                                              Effects | None]:
+    """The method the fields serve (:func:`fields_method`; none for geometry) and the effects
+    chosen for it from the effect probe (None without a field)."""
+    planned_for = fields_method(spec, method) if not parameters.has_geometry else None
+    if planned_for is None:
+        return None, None
+    return planned_for, choose_effects(measures.facts(), planned_for, method_class(planned_for).uses, spec.effects,
+                                       spec.training.delta_depth)
 
 
 def undetermined_texels(recipe: Recipe, measures: Measures,
@@ -379,10 +389,10 @@ def _optimizer(spec: JobSpec, method: str, parameters: Parameters, layout: Deriv
         decide("optimizer", "adam", "no scalar changes the image: nothing to model")
     elif spec.training.head is not None:
         decide("optimizer", "adam", "training.head (the many-parameter head): a Gauss-Newton step would need P "
-                                    "Jacobian images per view (services.solver.optimize.carry)")
+                                    "Jacobian images per view (services.solver.optimize.validate)")
     elif parameters.has_textures:
         decide("optimizer", "adam", f"a texture's {parameters.n} scalars: a Gauss-Newton step would solve with a "
-                                    f"P x P curvature (services.solver.optimize.carry)")
+                                    f"P x P curvature (services.solver.optimize.validate)")
     else:
         renders = jacobian_renders(layout) if method in PATH_METHODS and spec.jacobian == "method" else 0
         cap = MAX_GEOMETRY_RENDERS if parameters.has_geometry else MAX_JACOBIAN_RENDERS

@@ -7,10 +7,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Protocol
 
-from schemas.errors import InvalidJob
-from schemas.job import SECOND_ORDER, JobSpec
+from schemas.job import JobSpec
 from schemas.methods import AUTO, Method
-from services.solver.estimators.methods import method_class
 from services.solver.optimize.recipe import Remesh
 
 if TYPE_CHECKING:
@@ -25,22 +23,12 @@ class Measures(Protocol):
 
 
 def geometry_method(spec: JobSpec, measures: Measures, decide, *, direct: PathDepth, limit: float) -> str:
-    """The method of a job that moves a shape: the job's, when it can differentiate a moving
-    silhouette (else :class:`InvalidJob` with the reason), or ``auto``'s projective integrator:
+    """The method of a job that moves a shape: the job's (which the validate stage has checked
+    can differentiate a moving silhouette, :func:`~.validate.check_geometry`), or ``auto``'s
+    projective integrator:
     ``direct-projective`` where paths longer than ``direct`` carry at most ``limit`` of the light."""
     if spec.method != AUTO:
-        refusal = method_class(str(spec.method)).geometry_refusal
-        if refusal is not None:
-            raise InvalidJob("method", f"{spec.method} cannot optimize geometry (a shape's pose or vertices): "
-                                       f"{refusal}; use "
-                                       f"prb-projective or direct-projective (or method auto)")
-        if spec.jacobian == "differential-field":
-            raise InvalidJob("jacobian", "jacobian 'differential-field' is dL_theta's, which has no boundary term "
-                                         "for moving silhouettes: geometry takes the method's own Jacobian")
         return str(spec.method)
-    if spec.jacobian == "differential-field":
-        raise InvalidJob("jacobian", "jacobian 'differential-field' is dL_theta's, which has no boundary term for "
-                                     "moving silhouettes: geometry takes the method's own Jacobian")
     missing = measures.missing_energy(direct)
     share = f"paths longer than direct illumination carry {missing:.2%} of the image's light"
     if missing <= limit:
@@ -56,11 +44,9 @@ def geometry_method(spec: JobSpec, measures: Measures, decide, *, direct: PathDe
 
 
 def shape_optimizer(spec: JobSpec, spans: tuple[tuple[int, int], ...], decide) -> str:
-    """Adam, uniform per mesh, for a job that optimizes a mesh's vertices (module docstring)."""
+    """Adam, uniform per mesh, for a job that optimizes a mesh's vertices (module docstring; the
+    validate stage has refused a second-order optimizer, :func:`~.validate.check_geometry`)."""
     scalars = sum(stop - start for start, stop in spans)
-    if spec.optimizer in SECOND_ORDER:
-        raise InvalidJob("optimizer", f"{spec.optimizer} needs the Jacobian of every scalar, and a mesh's vertices are "
-                                      f"{scalars} scalars (one forward render each per view): use adam or auto")
     decide("optimizer", "adam", f"a mesh's vertices: {scalars} LargeSteps coordinates, whose Jacobian would cost one "
                                 f"forward render each per view; Adam on the adjoint gradient, one step scale per mesh "
                                 f"(uniform: the largest second moment, as mi.ad.Adam(uniform=True) in Mitsuba's shape "

@@ -1,9 +1,11 @@
 """From a validated :class:`schemas.job.JobSpec` to a ready problem: the scene loaded at the job's
 resolution, the optimized scalars with their initial values and bounds, and the target images.
 
-Everything that can be wrong with a job and that the schema alone cannot see (an unknown key, a
-wrong number of components, a target image of the wrong size) is raised here as an
-:class:`InvalidJob` naming the field, before any training or rendering.
+Everything that can be wrong with a job and that the schema alone cannot see is raised by
+:func:`check` as an :class:`InvalidJob` naming the field, before any training or rendering: what
+the scene's parameters make of the job (an unknown key, what a method or optimizer cannot carry;
+the validate stage, :mod:`.validate`), then a wrong number of components or a target image of the
+wrong size, as the values are read.
 
 The scene of an uploaded XML job is loaded from ``scene_file``: the host has checked and staged
 the uploaded files (``services.uploads``); the solver never sees untrusted paths itself.
@@ -25,14 +27,13 @@ from schemas.errors import InvalidJob
 from schemas.job import BuiltinScene, ImageTargets, JobSpec, SyntheticTargets
 from services.solver.estimators.problem import Problem
 from services.solver.estimators.render import PathDepth, missing_energy, render
-from services.solver.optimize.carry import check_carry, check_head
 from services.solver.optimize.textures import TextureReport
+from services.solver.optimize.validate import validate
 from services.solver.scene.closure import closure
 from services.solver.scene.facts import SceneFacts, direct_reach, probe_scene
 from services.solver.scene.footprint import texel_footprint
 from services.solver.scene.load import LoadedScene, load_scene
 from services.solver.scene.params import ParameterSet
-from services.solver.scene.remesh import expected_vertices
 from services.solver.scene.target_shape import own_topology, target_surface
 from services.solver.scene.targets import ImageDecodeError, decode_image
 from services.solver.seeds import derive_seed
@@ -202,7 +203,8 @@ class Checked:
 def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None = None,
           max_texels: int | None = None) -> Checked:
     """Load the scene and check everything but the synthetic rendering (shared by :func:`prepare`
-    and the service's preflight). Raises :class:`InvalidJob` naming the field."""
+    and the service's preflight): the validate stage (:func:`~.validate.validate`), then the
+    values. Raises :class:`InvalidJob` naming the field."""
     scene = load_job_scene(spec, scene_file)
     keys = [p.key for p in spec.parameters]
     try:
@@ -210,38 +212,12 @@ def check(spec: JobSpec, scene_file: Path | None = None, max_scalars: int | None
     except ValueError as exc:
         bad = [i for i, key in enumerate(keys) if f"{key!r}" in str(exc)]
         raise InvalidJob(f"parameters[{bad[0]}].key" if bad else "parameters", str(exc)) from None
-    split = TextureReport(parameters)
-    listed = int(split.listed.sum())
-    if max_scalars is not None and listed > max_scalars:
-        raise InvalidJob("parameters", f"{listed} scalars exceed the limit of {max_scalars} "
-                                       f"(an RGB value counts 3; textures count by texel instead; NDRF_MAX_PARAMETERS)")
-    if max_texels is not None and split.texels > max_texels:
-        raise InvalidJob("parameters", f"the textures have {split.texels} texels, more than the limit of {max_texels} "
-                                       f"(NDRF_MAX_TEXELS)")
-    vertices = sum(mesh.size // 3 for mesh in parameters.shapes.values())
-    if max_texels is not None and split.texels + vertices > max_texels:
-        raise InvalidJob("parameters", f"the optimized meshes have {vertices} vertices (and the textures "
-                                       f"{split.texels} texels), more than the limit of {max_texels} together "
-                                       f"(NDRF_MAX_TEXELS)")
-    remeshed = sum(expected_vertices(mesh.size // 3, spec.geometry.remesh_edge, len(spec.geometry.remesh_at))
-                   for mesh in parameters.shapes.values())
-    if max_texels is not None and spec.geometry.remesh_at and split.texels + remeshed > max_texels:
-        raise InvalidJob("geometry.remesh_edge", f"remeshing {len(spec.geometry.remesh_at)} time(s) to edges of "
-                                                 f"{spec.geometry.remesh_edge} of their mean length gives the optimized "
-                                                 f"meshes about {remeshed} vertices (from {vertices}: 1/edge^2 each "
-                                                 f"time), more than the limit of {max_texels} with the textures' "
-                                                 f"{split.texels} texels (NDRF_MAX_TEXELS)")
-    check_head(spec, [info.owner for info in parameters.infos])
-    check_carry(spec, parameters.n, [t.key for t in split.textures])
+    validate(spec, parameters, max_scalars=max_scalars, max_texels=max_texels)
     scene_values = parameters.values()
 
     init, lower, upper, offset = [], [], [], 0
     for i, (p, info) in enumerate(zip(spec.parameters, parameters.infos)):
         own = scene_values[offset:offset + info.size]
-        if p.key.endswith(".vertex_positions") and info.owner == "geometry" and (p.init, p.bounds) != (None, None):
-            raise InvalidJob(f"parameters[{i}]", "a shape parameter starts from the scene's mesh and has no bounds "
-                                                 "(its scalars are LargeSteps differential coordinates): leave init "
-                                                 "and bounds unset")
         channels = info.shape[-1] if info.shape is not None else None
         init.append(own if p.init is None else _broadcast(p.init, info.size, f"parameters[{i}].init", channels))
         lo, hi = _bounds(p.key, info.owner, p.bounds)
