@@ -7,7 +7,9 @@ Meanwhile it watches:
 
 * the lease (``lost``): the job was taken over, kill the child and write nothing more;
 * the host's stop request: ``canceled`` -> SIGUSR1, ``interrupted`` (shutdown) -> SIGTERM; the
-  child stops at its next training step, checkpoints (interrupted) and reports its outcome;
+  child stops at its next training step, checkpoints (interrupted) and reports its outcome. A
+  child still in its set-up (no ``plan`` frame yet: nothing to save) gets a short grace only
+  (#46: one set-up phase, a big scene's load or its synthetic targets, cannot be interrupted);
 * the wall-clock budget (``NDRF_MAX_JOB_SECONDS``) and the disk budget (``NDRF_MAX_JOB_BYTES``).
 
 A child that dies without an outcome (a signal, out of memory) fails the job with a description
@@ -55,6 +57,11 @@ log = logging.getLogger(__name__)
 
 POLL_SECONDS = 0.5
 STOP_GRACE_SECONDS = 60.0
+#: The grace of a stop asked before the child's ``plan`` frame (#46): in its set-up it has no
+#: iterate or checkpoint to save, and one uninterruptible phase may outlast STOP_GRACE_SECONDS.
+#: A couple of seconds let a child between phases (its ``_preparing`` polls the stop) or whose
+#: ``plan`` frame is already on its way report its own outcome; then it is killed.
+SETUP_STOP_GRACE_SECONDS = 2.0
 #: How the parent asks its child to stop (``services.jobs.child`` installs the handlers).
 STOP_SIGNALS = {Outcome.CANCELED: signal.SIGUSR1, Outcome.INTERRUPTED: signal.SIGTERM}
 
@@ -71,13 +78,16 @@ class AttemptResult:
 @dataclass
 class _Watch:
     """What the supervision of one attempt knows: the wall-clock ``deadline``, whether the child is
-    ``ready`` for signals (its handlers are installed: a signal before would kill it), the stop
-    asked of it (``stop_sent``) and when its grace ends, and whether the record's current images
-    request was passed on."""
+    ``ready`` for signals (its handlers are installed: a signal before would kill it), whether
+    it has ``planned`` (sent its ``plan`` frame: its set-up is over), the stop asked of it
+    (``stop_sent``, at ``stop_at``) and when its grace ends, and whether the record's current
+    images request was passed on."""
 
     deadline: float
     ready: bool = False
+    planned: bool = False
     stop_sent: Outcome | None = None
+    stop_at: float | None = None
     stop_deadline: float | None = None
     images_signalled: bool = False
 
@@ -185,16 +195,19 @@ class AttemptRunner:
                           watch: _Watch) -> None:
         """Pass the record's images request (SIGUSR2, once per request) and the host's stop request
         (``reason``: SIGUSR1 to cancel, SIGTERM to interrupt, once) to a child that is ready for
-        signals; starts the grace period of a stop."""
+        signals; starts the grace period of a stop (:data:`SETUP_STOP_GRACE_SECONDS` before the plan)."""
         if not watch.ready:
             return
         if writer.asked_for_images and not watch.images_signalled:
             child.signal(signal.SIGUSR2)  # the next iteration writes its images
         watch.images_signalled = writer.asked_for_images
         if reason and watch.stop_sent is None:
-            watch.stop_sent, watch.stop_deadline = reason, time.monotonic() + STOP_GRACE_SECONDS
+            grace = STOP_GRACE_SECONDS if watch.planned else SETUP_STOP_GRACE_SECONDS
+            watch.stop_sent, watch.stop_at = reason, time.monotonic()
+            watch.stop_deadline = watch.stop_at + grace
             child.signal(STOP_SIGNALS[reason])
-            log.info("job %s: asked the run to stop (%s)", job_id, reason)
+            log.info("job %s: asked the run to stop (%s), %s: a grace of %g s", job_id, reason,
+                     "running" if watch.planned else "still in its set-up", grace)
 
     def _check_clocks(self, child: Child, writer: JobWriter, watch: _Watch) -> AttemptResult | None:
         """The wall-clock budget (the job fails) and a stop's grace period (it stopped)."""
@@ -205,7 +218,9 @@ class AttemptRunner:
                                                 f"{self.limits.job_seconds:g} s (NDRF_MAX_JOB_SECONDS)")
         if watch.stop_sent is not None and watch.stop_deadline is not None and now > watch.stop_deadline:
             child.kill()  # it did not stop in time: the last checkpoint stands
-            return self._handle_stopped(writer, watch.stop_sent, "did not stop within its grace period")
+            how = ("did not stop within its grace period" if watch.planned else
+                   f"still in its set-up after {SETUP_STOP_GRACE_SECONDS:g} s, killed (nothing to save)")
+            return self._handle_stopped(writer, watch.stop_sent, how)
         return None
 
     def _handle_frame(self, child: Child, writer: JobWriter, watch: _Watch, item) -> AttemptResult | None:
@@ -217,6 +232,8 @@ class AttemptRunner:
         if isinstance(item, BaseException):
             return self._handle_exit(child, writer, watch, item)
         kind, meta, blobs = item
+        if kind == "plan":
+            self._handle_planned(watch)
         try:
             if kind == "outcome":
                 return self._handle_outcome(writer, outcome_of(meta, blobs))
@@ -231,6 +248,14 @@ class AttemptRunner:
             child.kill()
             return self._handle_failure(writer, f"the job's process sent a malformed report ({exc})")
         return None
+
+    @staticmethod
+    def _handle_planned(watch: _Watch) -> None:
+        """The set-up is over: a stop from now on, or one already asked in the set-up whose
+        short grace is running, gets the full grace (the run saves its answer)."""
+        watch.planned = True
+        if watch.stop_at is not None:
+            watch.stop_deadline = watch.stop_at + STOP_GRACE_SECONDS
 
     def _handle_exit(self, child: Child, writer: JobWriter, watch: _Watch, item: BaseException) -> AttemptResult:
         """The child's output ended without an outcome (``EOFError``) or could not be read. After a

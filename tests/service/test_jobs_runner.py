@@ -179,3 +179,63 @@ def test_the_byte_budget_bounds_what_the_files_take_not_what_was_ever_written(tm
     with pytest.raises(BudgetExceeded, match="disk budget of 4 MiB"):
         for k in range(4):
             resumed._put(files.key(f"extra-{k}"), megabyte)
+
+
+#: Synthetic targets of the small job at 65,536 spp and 48x48: one uninterruptible set-up phase
+#: (Mitsuba renders them in passes the loop cannot poll between) of about 35 s on two shared CPU
+#: cores (15 s at 32x32 measured), far longer than the bound below.
+LONG_SET_UP = {"targets": {"synthetic": {"values": {"red.reflectance.value": [0.57, 0.04, 0.04]}, "spp": 65536}},
+               "render": {"spp": 4, "gradient_spp": 4, "resolution": [48, 48]}}
+#: From the stop to the attempt's end: SETUP_STOP_GRACE_SECONDS (2 s), a poll or two of the
+#: supervision (POLL_SECONDS) and the summary's write, with room for a loaded machine; before
+#: #46 the stop waited for the phase to end (about 30 s here) or STOP_GRACE_SECONDS (60 s).
+SET_UP_STOP_SECONDS = 10.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("asked", [Outcome.CANCELED, Outcome.INTERRUPTED])
+def test_a_stop_during_a_long_set_up_phase_ends_the_attempt_within_seconds(tmp_path, asked):
+    """#46: a stop asked while the child renders its synthetic targets (it has sent no plan: nothing
+    to save) kills it after a short grace, and the attempt ends with the stop's own outcome
+    (canceled stays canceled; interrupted goes back to the queue, with no iteration done)."""
+    import time
+
+    service = JobService(FolderStore(tmp_path / "store"), LocalJobQueue(), LocalEventBus())
+    record, _ = service.submit(JobSpec.model_validate(small_job("direct", iterations=3, **LONG_SET_UP)))
+    service.states.transition(record.id, JobStatus.RUNNING, attempt="w#1")
+    files = service.states.files(record.id)
+    asked_at: list[float] = []
+
+    def stop() -> Outcome | None:   # once the child reports the targets' phase begun
+        if not asked_at and any(e.get("type") == "preparing" and "synthetic target" in e.get("what", "")
+                                for e in files.events()):
+            asked_at.append(time.monotonic())
+        return asked if asked_at else None
+
+    runner = AttemptRunner(service.states, Limits(spp=65536), tmp_path / "scratch")
+    result = runner.run(record.id, "w#1", lost=threading.Event(), stop=stop)
+    seconds = time.monotonic() - asked_at[0]
+    print(f"{asked}: {seconds:.1f} s from the stop to the attempt's end")
+    assert seconds < SET_UP_STOP_SECONDS, f"the stop took {seconds:.1f} s"
+    assert result.outcome is asked, result
+    assert files.iterations() == [] and not files.store.exists(files.key(JobFiles.PLAN)), "the set-up ended first"
+
+
+def test_a_stop_in_the_set_up_gets_the_full_grace_once_the_plan_arrives():
+    """A plan frame read during the set-up's short grace (it was on its way when the stop went
+    out) gives the run the full grace: from then on it has an answer to save."""
+    from types import SimpleNamespace
+
+    from services.jobs.runner import SETUP_STOP_GRACE_SECONDS, STOP_GRACE_SECONDS, _Watch
+
+    sent: list[int] = []
+    child = SimpleNamespace(signal=sent.append)
+    writer = SimpleNamespace(asked_for_images=False)
+    watch = _Watch(deadline=float("inf"), ready=True)
+    AttemptRunner._forward_requests("j", child, writer, Outcome.CANCELED, watch)
+    assert sent and watch.stop_deadline == pytest.approx(watch.stop_at + SETUP_STOP_GRACE_SECONDS)
+    AttemptRunner._handle_planned(watch)
+    assert watch.stop_deadline == pytest.approx(watch.stop_at + STOP_GRACE_SECONDS)
+    running = _Watch(deadline=float("inf"), ready=True, planned=True)
+    AttemptRunner._forward_requests("j", child, writer, Outcome.INTERRUPTED, running)
+    assert running.stop_deadline == pytest.approx(running.stop_at + STOP_GRACE_SECONDS)
