@@ -13,6 +13,7 @@ import binascii
 
 from schemas.errors import InvalidJob
 from schemas.job import ImageTargets, JobSpec, PathScene, SyntheticTargets
+from schemas.methods import AUTO, Method
 from schemas.solver import FieldConfig
 from services.settings import Limits
 
@@ -114,10 +115,73 @@ def check_setup(spec: JobSpec, vertices: int, limits: Limits) -> None:
                                        f"mesh (fewer vertices) or raise the budget")
 
 
+#: The share of the job budget its first iteration may be estimated to take.
+FIRST_ITERATION_SHARE = 0.5
+#: The methods whose first iteration :func:`first_iteration_samples` prices: each sample a traced
+#: path (``auto`` resolves to one of them but in closed scenes, where ``ndrf-lhs`` is cheaper).
+TRACED_METHODS = (AUTO, Method.PRB, Method.PRB_PROJECTIVE, Method.DIRECT_PROJECTIVE)
+#: The optimizers whose steps need the Jacobian, measured at the first iteration's views.
+JACOBIAN_OPTIMIZERS = ("levenberg-marquardt", "gauss-newton")
+
+
+def first_iteration_samples(spec: JobSpec, sensors: list, scalars: int, geometry: bool) -> tuple[int, int, int]:
+    """Samples the first iteration of a path-traced job traces, at least, as ``(pixels, per
+    pixel, Jacobian renders per view)`` (``bench/first_iteration.py`` times them): the films of
+    its first batch of views (``auto``: one, every view for a mesh or a texture; the smallest
+    films, as the batch is drawn) times the samples per pixel of each view's renders: under Adam
+    one differentiable render, the mean of ``spp`` (its primal pass) and ``gradient_spp`` (its
+    adjoint replay), which together cost about one forward-mode sample; under an explicit
+    Levenberg-Marquardt or Gauss-Newton, ``gradient_spp`` for each forward-mode render of the
+    Jacobian (one per channel group: at least a third of the scalars, one R, one G and one B per
+    group) and ``spp`` for the candidate when it differs. The recipe may raise a geometry job's
+    spp or pick Levenberg-Marquardt under ``auto``: never below this count. Zero for the field
+    methods (their cost is the training, capped by ``NDRF_MAX_TRAINING_*``)."""
+    if spec.method not in TRACED_METHODS or not sensors:
+        return 0, 0, 0
+    render, views = spec.render, spec.views_per_iteration
+    count = (len(sensors) if geometry else 1) if views == "auto" else min(int(views), len(sensors))
+    pixels = sum(sorted(int(w) * int(h) for w, h in sensors)[:count])
+    if spec.optimizer in JACOBIAN_OPTIMIZERS and spec.jacobian == "method":
+        groups = max(1, -(-scalars // 3))
+        return pixels, groups * render.gradient_spp + (render.spp if render.spp != render.gradient_spp else 0), groups
+    return pixels, (render.spp + render.gradient_spp + 1) // 2, 0
+
+
+def check_first_iteration(spec: JobSpec, report: dict, limits: Limits) -> None:
+    """Refuse a path-traced job whose first iteration is estimated to take more than
+    :data:`FIRST_ITERATION_SHARE` of its budget, at ``NDRF_MAX_WORKER_SAMPLES_PER_SECOND``,
+    naming the field to change: films, spp, views and scalars can each pass their caps and
+    together need hours for one iteration, holding a worker for the budget to return nothing.
+    The field: the Jacobian's (``parameters``) or the spp that dominates, else, when the job
+    would not fit even at 1 spp, ``render.resolution``."""
+    sensors = report["sensors"]
+    geometry = bool(report.get("vertices") or report.get("texels"))
+    pixels, per_pixel, groups = first_iteration_samples(spec, sensors, int(report.get("scalars") or 0), geometry)
+    rate, most = limits.worker_samples_per_second, FIRST_ITERATION_SHARE * limits.job_seconds
+    estimate = pixels * per_pixel / rate
+    if estimate <= most:
+        return
+    render = spec.render
+    if pixels / rate > most:
+        field = "render.resolution"
+    elif groups * render.gradient_spp >= render.spp:
+        field = "parameters" if groups > 1 and pixels * render.gradient_spp / rate <= most else "render.gradient_spp"
+    else:
+        field = "render.spp" if render.spp >= render.gradient_spp else "render.gradient_spp"
+    films = ", ".join(f"{w}x{h}" for w, h in sensors[:4]) + (", ..." if len(sensors) > 4 else "")
+    jacobian = f", {groups} Jacobian renders per view ({report.get('scalars')} scalars)" if groups else ""
+    raise InvalidJob(field, f"the first iteration would trace {pixels * per_pixel:.3g} samples ({pixels} pixels of "
+                            f"its first views, films {films}, x {per_pixel} per pixel: spp {render.spp}, gradient_spp "
+                            f"{render.gradient_spp}{jacobian}), estimated at {estimate:.0f} s at {rate:g} samples per "
+                            f"second (NDRF_MAX_WORKER_SAMPLES_PER_SECOND), more than {FIRST_ITERATION_SHARE:g} of the "
+                            f"job budget of {limits.job_seconds:g} s (NDRF_MAX_JOB_SECONDS); lower {field} or raise "
+                            f"the budget")
+
+
 def check_scene_report(spec: JobSpec, report: dict, limits: Limits) -> None:
     """Caps on what the sandboxed loader read from the scene: sensors and their films (after
-    the job's ``render.resolution``), the samples they imply, and the set-up its meshes need
-    (:func:`check_setup`)."""
+    the job's ``render.resolution``), the samples they imply, the set-up its meshes need
+    (:func:`check_setup`) and the cost of its first iteration (:func:`check_first_iteration`)."""
     check_setup(spec, int(report.get("vertices") or 0), limits)
     sensors = report["sensors"]
     if len(sensors) > limits.sensors:
@@ -128,3 +192,4 @@ def check_scene_report(spec: JobSpec, report: dict, limits: Limits) -> None:
             field = "render.resolution" if spec.render.resolution is not None else "scene"
             raise InvalidJob(field, f"sensor {i} has a film of {width}x{height}, over the limit of {limits.resolution} "
                                     f"pixels per side (NDRF_MAX_RESOLUTION); set render.resolution")
+    check_first_iteration(spec, report, limits)
