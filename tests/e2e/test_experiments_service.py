@@ -134,10 +134,11 @@ def test_six_runs_two_at_a_time_survive_a_killed_worker_and_append_reruns_nothin
 
 def test_retry_reruns_only_failed_runs_and_cancel_stops_the_rest(stack):
     api, store = stack.api, Path(stack.env["NDRF_STORE"])
-    # a disk budget of 1 MiB fails the 96x96 run (its gradient images alone exceed it), not the 16x16 one
+    # a disk budget of 1 MiB fails the 192x192 run, not the 16x16 one (its checkpoints keep the floor's
+    # residuals and Jacobians per 4x4 block of pixels: 96x96 fit in 1 MiB once the blocks were averaged)
     strict = [stack.add_worker(f"strict{i}", NDRF_MAX_JOB_BYTES=str(1 << 20)) for i in range(2)]
     _, _, accepted = api.json("POST", "/v1/experiments", {
-        "base": small_job("direct", iterations=8), "grid": {"render.resolution": [[16, 16], [96, 96]]},
+        "base": small_job("direct", iterations=8), "grid": {"render.resolution": [[16, 16], [192, 192]]},
         "max_concurrent": 2})
     exp_id = accepted["id"]
     experiment = wait_experiment(api, exp_id, 180)
@@ -158,10 +159,12 @@ def test_retry_reruns_only_failed_runs_and_cancel_stops_the_rest(stack):
     assert runs[1]["job"] != first[1] and runs[1]["attempts"] == 2 and runs[1]["status"] == "succeeded"
     assert api.json("POST", f"/v1/experiments/{exp_id}/retry")[0] == 409      # nothing left to retry
 
-    # cancel: the 2 running runs stop (keeping their iterations), the 4 pending never start
+    # cancel: the 2 running runs stop (keeping their iterations), the 4 pending never start; the
+    # runs must still be running when the cancel comes, so no stop rule may end them first
     stack.add_worker("second")
     _, _, accepted = api.json("POST", "/v1/experiments", {
-        "base": small_job("direct", iterations=400), "seeds": [1, 2, 3, 4, 5, 6], "max_concurrent": 2})
+        "base": small_job("direct", iterations=400, stop={"auto": False}), "seeds": [1, 2, 3, 4, 5, 6],
+        "max_concurrent": 2})
     long_id = accepted["id"]
     wait_until(lambda: sum(r["status"] == "running" and (r.get("iteration") or 0) >= 1
                            for r in job_records(store, long_id)) == 2, 180, 0.1, what="two runs iterating")

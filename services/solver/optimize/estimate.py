@@ -33,10 +33,16 @@ class BatchEstimate:
     jacobians: dict[int, list[np.ndarray]] = field(default_factory=dict)     # view -> [(P, n) float64, ...]
 
 
+#: Methods whose own Jacobian is a per-pixel Monte Carlo estimate (paths, or one bounce, at the
+#: gradient's samples per pixel), noisy enough at 1 spp to inflate ``J Jᵀ``.
+MONTE_CARLO_JACOBIANS = ("prb", "ndrf-rhs", "radiance-cache", "direct")
+
+
 def block_of(recipe: Recipe) -> int:
-    """Pixels per block side the Jacobian is averaged over: :data:`BLOCK` for ``prb``'s own
-    (1-spp Monte Carlo noise), 1 for a field's (smooth already)."""
-    return BLOCK if recipe.jacobian == "method" and recipe.method == "prb" else 1
+    """Pixels per block side the Jacobian is averaged over: :data:`BLOCK` for a Monte Carlo one
+    (:data:`MONTE_CARLO_JACOBIANS`: 1-spp noise, which the curvature ``J Jᵀ`` and the floor
+    would add to the signal), 1 for ``dL_theta`` read at the camera hits (smooth already)."""
+    return BLOCK if recipe.jacobian == "method" and recipe.method in MONTE_CARLO_JACOBIANS else 1
 
 
 def jacobian_of(problem: Problem, images: np.ndarray, block: int) -> np.ndarray:
