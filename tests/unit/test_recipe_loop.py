@@ -8,6 +8,7 @@ import itertools
 import json
 
 import numpy as np
+import pytest
 
 
 def _job(**extra) -> dict:
@@ -58,3 +59,32 @@ def test_a_cancel_during_the_set_up_ends_it_there(mi, tmp_path):
     assert summary["status"] == "canceled" and summary["iterations"] == 0
     assert not (tmp_path / "plan.json").exists()
     assert not list(tmp_path.glob("targets/*"))
+
+
+@pytest.mark.slow
+def test_a_biased_method_is_checked_against_prb_and_resumes_exactly(mi, tmp_path):
+    """ndrf-rhs under Levenberg-Marquardt: the plan says prb checks its dz/dp every
+    ``BIAS_EVERY`` iterations, and a run interrupted after some checks resumes to the same answer
+    and standard errors (the checks' own checkpoint round trip: ``test_answer.py``). About 2
+    minutes."""
+    from services.solver.optimize.resolve import BIAS_EVERY
+    from tests.support.jobs import SMALL_TRAINING
+    from tests.support.jobs import run_job as _run
+
+    job = _job(method="ndrf-rhs", training=SMALL_TRAINING, iterations=24)
+    reference = _run(job, tmp_path / "uninterrupted")
+    plan = json.loads((tmp_path / "uninterrupted" / "plan.json").read_text())
+    assert plan["recipe"]["optimizer"] == "levenberg-marquardt" and plan["recipe"]["bias_every"] == BIAS_EVERY
+    assert any(d["what"] == "bias_every" for d in plan["recipe"]["decisions"])
+
+    def stop_after_a_while():
+        done = sorted((tmp_path / "interrupted" / "iterations").glob("*/record.json"))
+        return "interrupted" if len(done) >= 15 else None
+
+    out = tmp_path / "interrupted"
+    assert _run(job, out, should_stop=stop_after_a_while)["status"] == "interrupted"
+    resumed = _run(job, out, resume=True)
+    events = [json.loads(line) for line in (out / "events.jsonl").read_text().splitlines()]
+    assert [e["iteration"] for e in events if e["type"] == "resumed"][0] >= 12
+    np.testing.assert_allclose(resumed["estimate"], reference["estimate"], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(resumed["standard_error"], reference["standard_error"], rtol=1e-6, atol=1e-12)

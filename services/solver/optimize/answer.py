@@ -50,6 +50,17 @@ parameters move. (With each half's own residuals, iterations the model does not 
 own error bars and pass: on the bright closed room the whole run stayed in the window, and the
 errors were twice the standard errors at every budget.)
 
+A biased gradient (a learned field's ``dz/dp``: ``ndrf-rhs``'s, a radiance cache's)
+moves every Newton estimate by ``-H⁻¹ b`` for its bias ``b``, which no error of its noise holds.
+Where the recipe checks it (``bias_every``), ``prb``'s unbiased ``dz/dp`` of the same views at the
+same parameters gives ``d_k = g_prb,k - g_k``, ``E d_k = -b``; over the window's checks
+(:data:`MIN_CHECKS` at least, whose mean ``d̄`` differs from 0 beyond its noise at the
+:data:`BIAS_LEVEL` level)
+
+    p̂ ← p̂ - H⁻¹ d̄,        Cov p̂ ← Cov p̂ + H⁻¹ (Cov d / n) H⁻¹
+
+so the answer is unbiased to first order again, at the price of ``prb``'s noise in ``d̄``.
+
 What the standard error covers: the run's own Monte Carlo noise, which averaging lowers without
 end, and (:class:`NewtonAnswer`) the floor that the targets' noise and the model's misfit leave,
 which no number of iterations lowers (:mod:`.floor`): ``SE = sqrt(SE_run² + SE_floor²)``.
@@ -74,6 +85,10 @@ MAX_WINDOW = 8192
 BATCHES = 16
 #: The χ² quantile two halves of a window must agree within.
 AGREEMENT = 0.99
+#: A biased gradient's checks correct the answer only where their mean differs from 0 at this level.
+BIAS_LEVEL = 0.95
+#: The fewest checks of a biased gradient (:meth:`NewtonAnswer.check`) in a window its bias is corrected from.
+MIN_CHECKS = 3
 #: The share of the run, from its start, that no window reaches into.
 TAIL = 1 / 3
 #: A :class:`MeanAnswer`'s iterates still move where the trend of its batch means is more than
@@ -161,6 +176,12 @@ class NewtonAnswer:
         self.gradients: list[np.ndarray] = []
         self.weights: list[float] = []
         self.curvatures: list[np.ndarray] = []
+        self.checks: list[tuple[int, np.ndarray]] = []   # (iteration, unbiased - biased dz/dp (P,))
+
+    def check(self, k: int, difference: np.ndarray) -> None:
+        """Iteration ``k``'s unbiased ``dz/dp`` (prb's) minus the method's, of the same views at the
+        same parameters: the method's bias, with both noises (module docstring)."""
+        self.checks = [*self.checks[-(MAX_WINDOW - 1):], (int(k), np.array(difference, np.float64))]
 
     def observe(self, p: np.ndarray, gradient: np.ndarray, weight: float, hessian: np.ndarray | None) -> None:
         """The next iteration: its parameters ``p`` and gradient ``(P,)``, its samples ``weight``
@@ -201,6 +222,9 @@ class NewtonAnswer:
             recent = fit(half, k) if length >= testable else None
             if recent is None or consistent(fit(start, half, recent[2])[:2], recent[:2]):
                 values, covariance, _ = fit(start, k)
+                bias = self._bias(last - length + 1, h_inv)
+                if bias is not None:   # the biased gradients' Newton estimate, moved by what prb measured
+                    values, covariance = values - bias[0], covariance + bias[1]
                 run = np.clip(np.diag(covariance), 0.0, None)
                 floor = self.floor.covariance(last - length + 1, h_inv)
                 total = run if floor is None else run + np.clip(np.diag(floor), 0.0, None)
@@ -208,6 +232,23 @@ class NewtonAnswer:
                                 self.kind, np.sqrt(run), None if floor is None else np.sqrt(np.diag(floor)))
             length = length * 3 // 4
         return Estimate(self.points[-1], None, last, last, "last")
+
+    def _bias(self, start: int, h_inv: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(H⁻¹ d̄, H⁻¹ Cov d̄ H⁻¹)`` from the checks of iterations ``>= start`` (the window): the
+        shift of the Newton estimate the gradients' mean bias ``-d̄`` makes, and its covariance;
+        None with fewer than :data:`MIN_CHECKS`, or where ``d̄`` is within its own noise (``χ²``
+        below the :data:`BIAS_LEVEL` quantile: a correction by noise alone would only add prb's
+        noise to the answer)."""
+        differences = np.array([d for k, d in self.checks if k >= start])
+        if len(differences) < MIN_CHECKS:
+            return None
+        mean = differences.mean(axis=0)
+        spread = np.atleast_2d(np.cov(differences, rowvar=False)) / len(differences)
+        scale = np.sqrt(np.clip(np.diag(spread), 1e-300, None))
+        chi2 = float(mean / scale @ np.linalg.pinv(spread / np.outer(scale, scale)) @ (mean / scale))
+        if chi2 <= chi2_quantile(mean.size, BIAS_LEVEL):   # no bias the checks can tell from their noise
+            return None
+        return h_inv @ mean, h_inv @ spread @ h_inv.T
 
     def residual(self, k: int, view: int, residual: np.ndarray, jacobian: np.ndarray | None,
                  weight: float = 1.0) -> None:
@@ -219,7 +260,8 @@ class NewtonAnswer:
         return {"first": self.first, "seen": self.seen, "points": np.array(self.points),
                 "gradients": np.array(self.gradients),
                 "weights": np.array(self.weights), "curvatures": np.array(self.curvatures),
-                "floor": self.floor.state_dict()}
+                "floor": self.floor.state_dict(), "check_iterations": [k for k, _ in self.checks],
+                "checks": np.array([d for _, d in self.checks])}
 
     def load_state_dict(self, state: dict) -> None:
         self.floor.load_state_dict(state["floor"])
@@ -228,6 +270,8 @@ class NewtonAnswer:
         self.gradients = [np.asarray(v, np.float64) for v in state["gradients"]]
         self.weights = [float(v) for v in state["weights"]]
         self.curvatures = [np.asarray(v, np.float64) for v in state["curvatures"]]
+        self.checks = [(int(k), np.asarray(d, np.float64))
+                       for k, d in zip(state.get("check_iterations", []), state.get("checks", []))]
 
 
 class MeanAnswer:
@@ -268,6 +312,10 @@ class MeanAnswer:
     def residual(self, k: int, view: int, residual: np.ndarray, jacobian: np.ndarray | None,
                  weight: float = 1.0) -> None:
         """No floor without a curvature to turn it into parameter errors."""
+
+    def check(self, k: int, difference: np.ndarray) -> None:
+        """No bias correction without a curvature to turn a gradient's bias into the parameters'
+        (the recipe checks second-order runs only)."""
 
     def _fit(self, a: int, b: int, noise: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The weighted mean of batches ``a..b-1``, its per-scalar variance and the variance of a

@@ -31,6 +31,7 @@ class Built:
     trainer: FieldTrainer | None        # the fields, when the method or the Jacobian uses them
     jacobian: GradientMethod | None     # the Jacobian's source when it is not the method itself
     optimizer: ParameterOptimizer
+    check: GradientMethod | None = None  # prb, whose unbiased dz/dp checks a biased method's (recipe.bias_every)
 
     @property
     def jacobian_source(self) -> GradientMethod:
@@ -69,7 +70,8 @@ def build(prepared: Prepared, recipe: Recipe) -> Built:
     if recipe.candidate == "field" or recipe.first_hits == "cached":
         method = _cached(prepared, recipe, method, trainer, field_candidate=recipe.candidate == "field",
                          cached_lhs=recipe.first_hits == "cached")
-    return Built(method, trainer, jacobian_method, build_optimizer(prepared, recipe))
+    check = make_method("prb", problem.effects, recipe.depth) if recipe.bias_every else None
+    return Built(method, trainer, jacobian_method, build_optimizer(prepared, recipe), check)
 
 
 def build_optimizer(prepared: Prepared, recipe: Recipe) -> ParameterOptimizer:

@@ -31,6 +31,7 @@ class BatchEstimate:
     dz_dp: np.ndarray                                   # (P,) float64
     candidates: dict[int, np.ndarray] = field(default_factory=dict)          # view -> (H, W, 3)
     jacobians: dict[int, list[np.ndarray]] = field(default_factory=dict)     # view -> [(P, n) float64, ...]
+    unbiased: np.ndarray | None = None                  # (P,) prb's dz/dp of the same views (recipe.bias_every)
 
 
 #: Methods whose own Jacobian is a per-pixel Monte Carlo estimate (paths, or one bounce, at the

@@ -165,6 +165,9 @@ class Recipe:
     first_hits: str = "fresh"
     cache_spp: int = 1
     head: bool = False
+    #: every this many iterations, ``prb``'s unbiased ``dz/dp`` of the same views beside the
+    #: method's, whose difference the answer corrects its bias by (0: never; :mod:`.answer`)
+    bias_every: int = 0
 
     @staticmethod
     def is_hybrid(method: str, fields_for: str | None) -> bool:
@@ -195,5 +198,5 @@ class Recipe:
                 "blur": None if self.blur is None else self.blur.to_json(),
                 "remesh": None if self.remesh is None else self.remesh.to_json(),
                 "candidate": self.candidate, "first_hits": self.first_hits, "cache_spp": self.cache_spp,
-                "head": self.head,
+                "head": self.head, "bias_every": self.bias_every,
                 "decisions": [asdict(d) for d in self.decisions], "warnings": list(self.warnings)}

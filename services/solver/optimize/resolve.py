@@ -36,6 +36,11 @@ samples per pixel). The rules and what they rest on (``bench/results/``):
   the noisy tail of longer paths.
 * **A texture** (``bench/results/textures*.md``): Adam (a Gauss-Newton step would need a P x P
   curvature), every view at :data:`TEXTURE_SPP` spp per iteration.
+* **A biased gradient is checked** (:data:`BIASED_GRADIENTS`: ``ndrf-rhs``'s or a radiance
+  cache's ``dz/dp``): under second-order steps every :data:`BIAS_EVERY` iterations ``prb``'s unbiased
+  ``dz/dp`` of the same views is taken too, and the answer's Newton estimate is corrected by the
+  mean difference (:mod:`.answer`), its error included; without it, ``ndrf-rhs`` on hidden-object
+  as written returned errors 1.5 times its standard errors (``python -m bench.coverage``).
 * **Geometry** (a pose, :mod:`services.solver.scene.geometry`): only Mitsuba's projective
   integrators differentiate a moving silhouette; every other method refuses it with the reason.
   ``auto`` takes ``direct-projective`` where direct light is all but :data:`MISSING_ENERGY` of the
@@ -117,6 +122,14 @@ NDRF_MAX_SCALARS = 12
 #: growth and Jacobian renders included (bench/results/pareto.md: 75 s for 30 x 128², 16 s for 30 x
 #: 64²), the field's warm-up 20-40 s: below this (about 37 s of prb) the warm-up does not pay.
 NDRF_MIN_WORK = 1 << 18
+#: The methods whose biased ``dz/dp`` (a learned field's) is checked against ``prb``'s unbiased one
+#: every :data:`BIAS_EVERY` iterations. Not ``ndrf-lhs``: in closed rooms, where it is chosen, the
+#: checks' 1-spp prb noise moved its answer off (room-closed-8 at 30 iterations, 5 seeds: median max
+#: error 0.013 checked; the unchecked runs' 0.0017), though bright-room's coverage rose 30% -> 57%.
+BIASED_GRADIENTS = (Method.NDRF_RHS, Method.RADIANCE_CACHE)
+#: One ``prb`` adjoint render per view of every this many iterations: ten in the window of a
+#: 30-iteration run (its last two thirds), at half a prb run's renders.
+BIAS_EVERY = 2
 #: The methods whose paths are Mitsuba's (forward-mode Jacobian renders, one per channel group).
 PATH_METHODS = (Method.PRB, Method.PRB_PROJECTIVE, Method.DIRECT_PROJECTIVE)
 
@@ -275,6 +288,7 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
                   curvature_every=spec.jacobian_every, trust_growth=growth, trust_start=start,
                   restarts=remesh.at if remesh is not None else ())
     stop = stop_rule(spec, optimizer, decide, not_before=remesh.at[-1] if remesh is not None else 0)
+    bias_every = _bias_check(spec, method, steps, parameters, decide)
     blocks = _texture_blocks(spec, parameters, measures, decide) if parameters.has_textures else ()
     radiance, differential = _fields(spec, method, planned_for, effects, depth)
     first_hits = spec.render.first_hits
@@ -282,7 +296,7 @@ def resolve(spec: JobSpec, parameters: Parameters, sensors: int, measures: Measu
         first_hits = "cached"
         decide("first_hits", first_hits, "the Jacobian is dL_theta at the camera's first hits, traced once per job")
     return Recipe(candidate=spec.render.candidate, first_hits=first_hits, cache_spp=spec.render.gradient_spp,
-                  head=spec.training.head is not None,
+                  head=spec.training.head is not None, bias_every=bias_every,
                   method=method, jacobian=spec.jacobian, fields_for=planned_for, depth=depth, effects=effects,
                   layout=layout, steps=steps, batch=batch, stop=stop, decisions=tuple(decisions),
                   warnings=tuple(warnings), texture_blocks=blocks, radiance=radiance, differential=differential,
@@ -301,6 +315,20 @@ def _fields(spec: JobSpec, method: str, planned_for: str | None, effects: Effect
         return field_candidate, False
     radiance, differential = trained_fields(make_method(planned_for, effects, depth), effects, radiance=field_candidate)
     return radiance, differential
+
+
+def _bias_check(spec: JobSpec, method: str, steps: Steps, parameters: Parameters, decide) -> int:
+    """Every how many iterations ``prb``'s unbiased ``dz/dp`` checks a biased method's (module
+    docstring; 0: never): for second-order steps on scalars with a field's or one bounce's gradient."""
+    if method not in BIASED_GRADIENTS or not steps.second_order or spec.training.head is not None \
+            or parameters.has_textures or parameters.has_geometry:
+        return 0
+    decide("bias_every", BIAS_EVERY,
+           f"{method}'s dz/dp is biased by what its fields miss, which no standard error of its own "
+           f"noise holds; every {BIAS_EVERY} iterations prb's unbiased dz/dp of the same views measures that bias, "
+           f"and the answer's Newton estimate is corrected by it, its error included (hidden-object as written, "
+           f"bench.coverage)")
+    return BIAS_EVERY
 
 
 def _planned(spec: JobSpec, method: str, parameters: Parameters, measures: Measures) -> tuple[str | None,

@@ -69,7 +69,8 @@ class Run:
     def estimate(self, k: int, batch: Batch) -> BatchEstimate:
         """Steps 2-5 for iteration ``k``'s ``batch`` at the scene's current parameters
         (:mod:`.estimate`): each view's candidate and loss, ``dz/dp`` (Eq. 10) scaled to the sum
-        over every view, and the Jacobian (Eq. 3) of the views the curvature asks for."""
+        over every view, and the Jacobian (Eq. 3) of the views the curvature asks for; every
+        ``recipe.bias_every`` iterations also ``prb``'s unbiased ``dz/dp`` of the same views."""
         prepared, recipe, built, state, fields = self.prepared, self.recipe, self.built, self.state, self.fields
         problem, seed0, size = prepared.problem, prepared.spec.seed, state.batch
         measured, draws = built.optimizer.jacobians_wanted(k, batch.sensors)
@@ -90,6 +91,11 @@ class Run:
                 if view in measured:   # J from another source (the hybrid's dL_theta): a seed of its own
                     images = built.jacobian_source.gradient_images(problem, fields, spp=size.gradient_spp,
                                                                    seed=derive_seed(seed, "jacobian"), sensor=view)
+            if built.check is not None and k % recipe.bias_every == 0:   # prb's unbiased dz/dp, its own samples
+                _, _, unbiased = built.check.candidate_and_gradient(
+                    problem, fields, loss, spp=size.spp, gradient_spp=size.gradient_spp,
+                    seed=derive_seed(seed, "bias"), depth=recipe.depth, sensor=view)
+                out.unbiased = batch.scale * unbiased + (0.0 if out.unbiased is None else out.unbiased)
             out.dz_dp += batch.scale * dz_dp
             out.loss += batch.scale * z
             out.candidates[view] = candidate
@@ -133,6 +139,8 @@ class Run:
                 state.answer.residual(k, view, block_residual(loss.image(candidate), loss.target, block),
                                       None if jacobian is None else jacobian[0], state.batch.spp)
         weight = len(estimate.candidates) * state.batch.gradient_spp
+        if estimate.unbiased is not None:
+            state.answer.check(k, estimate.unbiased - estimate.dz_dp)
         state.answer.observe(state.parameters, estimate.dz_dp, weight, None if curvature is None else curvature.hessian)
         return state.answer.estimate()
 
