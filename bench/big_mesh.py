@@ -20,49 +20,12 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 from bench.common import machine, markdown_table, write_markdown
+from harness.meshes import SPHERE_SCENE, uv_sphere
 
 log = logging.getLogger("bench.big_mesh")
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "bench" / "results" / "big_mesh.json"
-
-SCENE = """<scene version="3.0.0">
-  <integrator type="direct"/>
-  <sensor type="perspective" id="view-0"><float name="fov" value="35"/>
-    <transform name="to_world"><lookat origin="0, 0.7, 2" target="0, 0, 0" up="0, 1, 0"/></transform>
-    <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/>
-      <rfilter type="box"/></film>
-    <sampler type="independent"><integer name="sample_count" value="1"/></sampler></sensor>
-  <shape type="ply" id="sphere"><string name="filename" value="sphere.ply"/><bsdf type="diffuse"/></shape>
-  <emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>
-</scene>"""
-
-
-def uv_sphere(rings: int) -> tuple[np.ndarray, np.ndarray]:
-    """A sphere of radius 0.5: ``rings`` latitude rings of ``rings + 2`` vertices and two poles;
-    vertices ``(V, 3)`` float32 and faces ``(F, 3)`` int64, wound outwards."""
-    segments = rings + 2
-    theta = np.linspace(0, np.pi, rings + 2)[1:-1]
-    phi = np.linspace(0, 2 * np.pi, segments, endpoint=False)
-    t, p = np.meshgrid(theta, phi, indexing="ij")
-    ring = np.stack([np.sin(t) * np.cos(p), np.cos(t), np.sin(t) * np.sin(p)], -1).reshape(-1, 3)
-    vertices = np.concatenate([[[0, 1, 0]], ring, [[0, -1, 0]]]) * 0.5
-    south = len(vertices) - 1
-
-    def index(r, s):
-        return 1 + r * segments + s % segments
-
-    s = np.arange(segments)
-    r = np.arange(rings - 1)[:, None]
-    a, b, c, d = index(r, s), index(r, s + 1), index(r + 1, s), index(r + 1, s + 1)
-    faces = np.concatenate([
-        np.stack([np.zeros_like(s), index(0, s + 1), index(0, s)], -1),
-        np.stack([np.stack([a, b, d], -1), np.stack([a, d, c], -1)], 2).reshape(-1, 3),
-        np.stack([np.full_like(s, south), index(rings - 1, s), index(rings - 1, s + 1)], -1)])
-    return vertices.astype(np.float32), faces.astype(np.int64)
-
 
 def measure(rings: int) -> dict:
     from schemas.job import JobSpec
@@ -73,7 +36,7 @@ def measure(rings: int) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         (folder / "sphere.ply").write_bytes(ply_bytes(vertices, faces))
-        (folder / "scene.xml").write_text(SCENE)
+        (folder / "scene.xml").write_text(SPHERE_SCENE)
         job = {"name": "big mesh", "scene": {"path": str(folder / "scene.xml")},
                "parameters": [{"key": "sphere.vertex_positions"}],
                "targets": {"synthetic": {"values": {}, "meshes": {"sphere": {"scale": [1.1, 0.9, 1.0]}}, "spp": 1}},

@@ -18,10 +18,11 @@ import logging
 import signal
 import time
 
-import numpy as np
 import pytest
 
 from harness.cluster import Api, Process, Redis, small_job, start_api
+from harness.meshes import SPHERE_SCENE, uv_sphere
+from services.solver.scene.shape import ply_bytes
 
 log = logging.getLogger(__name__)
 pytestmark = pytest.mark.slow
@@ -35,43 +36,6 @@ RINGS = 316
 #: 60 s grace period.
 CANCEL_SECONDS = 10.0
 
-SCENE = """<scene version="3.0.0">
-  <integrator type="direct"/>
-  <sensor type="perspective"><float name="fov" value="35"/>
-    <transform name="to_world"><lookat origin="0, 0.7, 2" target="0, 0, 0" up="0, 1, 0"/></transform>
-    <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/>
-      <rfilter type="box"/></film>
-    <sampler type="independent"><integer name="sample_count" value="1"/></sampler></sensor>
-  <shape type="ply" id="sphere"><string name="filename" value="sphere.ply"/><bsdf type="diffuse"/></shape>
-  <emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>
-</scene>"""
-
-
-def sphere_ply(rings: int) -> bytes:
-    """A binary PLY of a UV sphere of radius 0.5: ``rings`` rings of ``rings + 2`` vertices and
-    two poles, triangles wound outwards."""
-    segments = rings + 2
-    theta = np.linspace(0, np.pi, rings + 2)[1:-1]
-    t, p = np.meshgrid(theta, np.linspace(0, 2 * np.pi, segments, endpoint=False), indexing="ij")
-    ring = np.stack([np.sin(t) * np.cos(p), np.cos(t), np.sin(t) * np.sin(p)], -1).reshape(-1, 3)
-    vertices = (np.concatenate([[[0, 1, 0]], ring, [[0, -1, 0]]]) * 0.5).astype("<f4")
-    south = len(vertices) - 1
-    s, r = np.arange(segments), np.arange(rings - 1)[:, None]
-
-    def index(r, s):
-        return 1 + r * segments + s % segments
-
-    a, b, c, d = index(r, s), index(r, s + 1), index(r + 1, s), index(r + 1, s + 1)
-    faces = np.concatenate([np.stack([np.zeros_like(s), index(0, s + 1), index(0, s)], -1),
-                            np.stack([np.stack([a, b, d], -1), np.stack([a, d, c], -1)], 2).reshape(-1, 3),
-                            np.stack([np.full_like(s, south), index(rings - 1, s), index(rings - 1, s + 1)], -1)])
-    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertices)}\nproperty float x\n"
-              f"property float y\nproperty float z\nelement face {len(faces)}\n"
-              "property list uchar int vertex_indices\nend_header\n").encode()
-    rows = np.zeros(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
-    rows["n"], rows["i"] = 3, faces
-    return header + vertices.tobytes() + rows.tobytes()
-
 
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
@@ -81,7 +45,7 @@ def stack(tmp_path_factory):
     api_proc, alice = start_api(tmp, env)
     worker = Process(["-v", "worker", "--name", "w"], env, tmp / "worker.log")
     job = {"name": "big mesh", "seed": 0,
-           "scene": {"xml": SCENE, "files": {"sphere.ply": base64.b64encode(sphere_ply(RINGS)).decode()}},
+           "scene": {"xml": SPHERE_SCENE, "files": {"sphere.ply": base64.b64encode(ply_bytes(*uv_sphere(RINGS))).decode()}},
            "parameters": [{"key": "sphere.vertex_positions"}],
            "targets": {"synthetic": {"values": {}, "meshes": {"sphere": {"scale": [1.1, 0.9, 1.0]}}, "spp": 1}},
            "iterations": 2, "render": {"resolution": [16, 16], "spp": 1}}
