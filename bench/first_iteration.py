@@ -82,7 +82,7 @@ def measure(name: str) -> dict:
     scene, size, spp, optimizer, walls, views = CASES[name]
     spec = JobSpec.model_validate(_job(scene, size, spp, optimizer, walls, views))
     sensors = [[size, size]] * (8 if scene == "room-open-8" else 1)
-    pixels, per_pixel, groups = first_iteration_samples(spec, sensors, 3 * len(spec.parameters), geometry=False)
+    pixels, per_pixel, groups = first_iteration_samples(spec, sensors, 3 * len(spec.parameters), every_view=False)
     records: list[dict] = []
     with tempfile.TemporaryDirectory() as tmp:
         started = time.perf_counter()

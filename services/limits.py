@@ -124,11 +124,11 @@ TRACED_METHODS = (AUTO, Method.PRB, Method.PRB_PROJECTIVE, Method.DIRECT_PROJECT
 JACOBIAN_OPTIMIZERS = ("levenberg-marquardt", "gauss-newton")
 
 
-def first_iteration_samples(spec: JobSpec, sensors: list, scalars: int, geometry: bool) -> tuple[int, int, int]:
+def first_iteration_samples(spec: JobSpec, sensors: list, scalars: int, every_view: bool) -> tuple[int, int, int]:
     """Samples the first iteration of a path-traced job traces, at least, as ``(pixels, per
     pixel, Jacobian renders per view)`` (``bench/first_iteration.py`` times them): the films of
-    its first batch of views (``auto``: one, every view for a mesh or a texture; the smallest
-    films, as the batch is drawn) times the samples per pixel of each view's renders: under Adam
+    its first batch of views (``auto``: one, or every view with ``every_view``, a mesh's or a
+    texture's job; the smallest films, as the batch is drawn) times the samples per pixel of each view's renders: under Adam
     one differentiable render, the mean of ``spp`` (its primal pass) and ``gradient_spp`` (its
     adjoint replay), which together cost about one forward-mode sample; under an explicit
     Levenberg-Marquardt or Gauss-Newton, ``gradient_spp`` for each forward-mode render of the
@@ -139,7 +139,7 @@ def first_iteration_samples(spec: JobSpec, sensors: list, scalars: int, geometry
     if spec.method not in TRACED_METHODS or not sensors:
         return 0, 0, 0
     render, views = spec.render, spec.views_per_iteration
-    count = (len(sensors) if geometry else 1) if views == "auto" else min(int(views), len(sensors))
+    count = (len(sensors) if every_view else 1) if views == "auto" else min(int(views), len(sensors))
     pixels = sum(sorted(int(w) * int(h) for w, h in sensors)[:count])
     if spec.optimizer in JACOBIAN_OPTIMIZERS and spec.jacobian == "method":
         groups = max(1, -(-scalars // 3))
@@ -155,8 +155,8 @@ def check_first_iteration(spec: JobSpec, report: dict, limits: Limits) -> None:
     The field: the Jacobian's (``parameters``) or the spp that dominates, else, when the job
     would not fit even at 1 spp, ``render.resolution``."""
     sensors = report["sensors"]
-    geometry = bool(report.get("vertices") or report.get("texels"))
-    pixels, per_pixel, groups = first_iteration_samples(spec, sensors, int(report.get("scalars") or 0), geometry)
+    every_view = bool(report.get("vertices") or report.get("texels"))   # a mesh's or a texture's job
+    pixels, per_pixel, groups = first_iteration_samples(spec, sensors, int(report.get("scalars") or 0), every_view)
     rate, most = limits.worker_samples_per_second, FIRST_ITERATION_SHARE * limits.job_seconds
     estimate = pixels * per_pixel / rate
     if estimate <= most:

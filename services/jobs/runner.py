@@ -88,8 +88,16 @@ class _Watch:
     planned: bool = False
     stop_sent: Outcome | None = None
     stop_at: float | None = None
-    stop_deadline: float | None = None
     images_signalled: bool = False
+
+    @property
+    def stop_deadline(self) -> float | None:
+        """When the grace of the stop asked ends: :data:`STOP_GRACE_SECONDS` after it once the
+        child has planned (a stop asked in the set-up gets the full grace when its plan arrives),
+        :data:`SETUP_STOP_GRACE_SECONDS` before."""
+        if self.stop_at is None:
+            return None
+        return self.stop_at + (STOP_GRACE_SECONDS if self.planned else SETUP_STOP_GRACE_SECONDS)
 
 
 class AttemptRunner:
@@ -202,12 +210,11 @@ class AttemptRunner:
             child.signal(signal.SIGUSR2)  # the next iteration writes its images
         watch.images_signalled = writer.asked_for_images
         if reason and watch.stop_sent is None:
-            grace = STOP_GRACE_SECONDS if watch.planned else SETUP_STOP_GRACE_SECONDS
             watch.stop_sent, watch.stop_at = reason, time.monotonic()
-            watch.stop_deadline = watch.stop_at + grace
             child.signal(STOP_SIGNALS[reason])
             log.info("job %s: asked the run to stop (%s), %s: a grace of %g s", job_id, reason,
-                     "running" if watch.planned else "still in its set-up", grace)
+                     "running" if watch.planned else "still in its set-up",
+                     STOP_GRACE_SECONDS if watch.planned else SETUP_STOP_GRACE_SECONDS)
 
     def _check_clocks(self, child: Child, writer: JobWriter, watch: _Watch) -> AttemptResult | None:
         """The wall-clock budget (the job fails) and a stop's grace period (it stopped)."""
@@ -254,8 +261,6 @@ class AttemptRunner:
         """The set-up is over: a stop from now on, or one already asked in the set-up whose
         short grace is running, gets the full grace (the run saves its answer)."""
         watch.planned = True
-        if watch.stop_at is not None:
-            watch.stop_deadline = watch.stop_at + STOP_GRACE_SECONDS
 
     def _handle_exit(self, child: Child, writer: JobWriter, watch: _Watch, item: BaseException) -> AttemptResult:
         """The child's output ended without an outcome (``EOFError``) or could not be read. After a
