@@ -9,7 +9,7 @@ everything else), once per seed and per first samples per pixel, set through the
 noise-dominated). Reported: the iteration and the seconds (on :func:`bench.regime.run_product`'s
 clock) at which the largest parameter error first falls below ``--target-error`` within the job's
 own iterations, and the median seconds per iteration. ``auto``'s rule for scalars seen only
-through interreflection (``services.solver.optimize.resolve._indirect_only``) rests on this table.
+through interreflection (``services.solver.optimize.rules.first_spp.indirect_only``) rests on this table.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""A job resolved into its recipe (``services/solver/optimize/resolve.py``): what ``auto``
+"""A job resolved into its recipe (``services/solver/optimize/resolve.py`` and its rules): what ``auto``
 chooses before the first iteration and why, what a job's own choices leave alone, that the
 recipe is frozen, and how the run's batch grows."""
 
@@ -66,7 +66,7 @@ class Measures:
 def effects_from_bounces(monkeypatch):
     """choose_effects faked: every scalar active in all channels, first reached after the bounces
     the Measures' ``first_bounces`` give (None: unreached)."""
-    import services.solver.optimize.resolve as module
+    import services.solver.optimize.rules.fields as module
 
     def plan(bounces, *args, **kwargs):
         on = Switch(True, "")

@@ -302,7 +302,7 @@ def test_a_flat_shaded_mesh_is_named_in_the_plan(mi, sphere):
     """``shape-sphere``'s icosphere carries vertex normals; ``pose-block``'s box is flat-shaded, and
     the recipe of a job that moves it warns that the motion of its shading's jumps (its edges) is
     not differentiated. Failed (['sphere']) while the icosphere was generated without normals."""
-    from services.solver.optimize.resolve_geometry import flat_shading_warning
+    from services.solver.optimize.rules.geometry import flat_shading_warning
     from services.solver.scene.load import load_scene
     from services.solver.scene.params import ParameterSet
 

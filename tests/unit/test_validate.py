@@ -16,8 +16,9 @@ from services.solver.scene.effects import EffectChoice, Effects, ScalarEffect
 
 ROOT = Path(__file__).resolve().parents[2]
 #: The modules of ``resolve``: its rules choose and explain, and raise nothing.
-RESOLVE = ["services/solver/optimize/resolve.py", "services/solver/optimize/resolve_geometry.py",
-           "services/solver/optimize/blur.py", "services/solver/optimize/stopping.py"]
+RESOLVE = ["services/solver/optimize/resolve.py", "services/solver/optimize/blur.py",
+           "services/solver/optimize/stopping.py",
+           *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "services/solver/optimize/rules").glob("*.py"))]
 POSE = ["block.to_world.translate", "block.to_world.rotate"]
 
 
@@ -63,19 +64,20 @@ def test_the_preflight_refuses_what_only_the_run_refused_before(mi):
 def test_a_scene_without_interreflection_takes_the_methods_own_jacobian(monkeypatch):
     """Where the scene (not the job) turns dL_theta off, the hybrid's Jacobian is moot: resolve
     takes the method's own, says why, and trains no field; it does not refuse at run time."""
-    import services.solver.optimize.resolve as module
+    import services.solver.optimize.rules.fields as fields
+    from services.solver.optimize.resolve import resolve
 
     def effects(facts, method, uses, overrides, delta_depth):
         on, off = EffectChoice(True, ""), EffectChoice(False, "none of 512 probe rays reaches another surface")
         return Effects(on, on, on, off, EffectChoice(0, ""),
                        [ScalarEffect(f"s{i}", True, (0, 1, 2), "", 0) for i in range(6)])
 
-    monkeypatch.setattr(module, "choose_effects", effects)
+    monkeypatch.setattr(fields, "choose_effects", effects)
     measures = SimpleNamespace(facts=lambda: None, closure=lambda: 0.1, direct=lambda: [True] * 6,
                                film=lambda: (64, 64), missing_energy=lambda depth: 0.0)
     parameters = SimpleNamespace(has_textures=False, has_geometry=False, n=6, sizes=[3, 3])
-    recipe = module.resolve(_albedo_job(jacobian="differential-field", optimizer="levenberg-marquardt"), parameters,
-                            8, measures)
+    recipe = resolve(_albedo_job(jacobian="differential-field", optimizer="levenberg-marquardt"), parameters, 8,
+                     measures)
     assert (recipe.method, recipe.jacobian, recipe.fields_for, recipe.first_hits) == ("prb", "method", None, "fresh")
     assert not recipe.hybrid and not (recipe.radiance or recipe.differential)
     said = {d.what: d.reason for d in recipe.decisions}

@@ -12,7 +12,7 @@
 
                 The reported loss stays the image loss ``z(y)``; ``R`` enters only the step.
 ``resolution``  ``auto``: a texture whose footprint is too small for its texels moves in blocks of
-                ``B x B`` texels throughout (:mod:`services.solver.optimize.resolve`); the gradient is
+                ``B x B`` texels throughout (:mod:`.rules.texture_resolution`); the gradient is
                 averaged over each block as in a coarse stage below.
 ``coarse_to_fine``  ``L`` levels: the first half of the iterations is split evenly into ``L`` stages
                 whose gradient is averaged over blocks of ``2^L, ..., 2`` texels per side and

@@ -72,7 +72,7 @@ class Prepared:
 
 class SceneMeasures:
     """The measurements of a prepared job's scene that :func:`~.resolve.resolve` may ask for
-    (:class:`~.resolve.Measures`), each taken once, when first asked, and timed (``seconds``: the
+    (:class:`~.rules.inputs.Measures`), each taken once, when first asked, and timed (``seconds``: the
     time deciding took, which the benchmarks charge to the product).
 
     ``facts``    the effect probe, at the scene file's own values (as every run has probed: a

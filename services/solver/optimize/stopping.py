@@ -77,7 +77,7 @@ class StopRule:
         return None
 
 
-def stop_rule(spec: JobSpec, optimizer: str, decide: Callable[[str, object, str], None],
+def stop_rule(spec: JobSpec, optimizer: str, decide: Callable[[str, str | int | float, str], None],
               not_before: int = 0) -> StopRule:
     """The job's ``stop`` as a rule for an ``optimizer``'s run (``auto`` needs a curvature), never
     stopping before ``not_before`` (a shape job's last remesh); ``decide(what, value, why)``

@@ -35,7 +35,7 @@ What each gradient method and optimizer can carry:
 ``differential-field``
 =====================  =====================================================================
 
-``auto`` takes ``prb`` with Adam for a job with a texture (``services.solver.optimize.recipe``).
+``auto`` takes ``prb`` with Adam for a job with a texture (:mod:`.rules.optimizer`).
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ the lookup's weight. Summed over the views: ``(H, W)`` pixel counts.
 Why the recipe wants it: each pixel gives one equation per channel, so a texture whose texels
 outnumber the pixels that see them cannot be pinned down by the images alone. Its noise-driven
 texels end at whatever the optimizer's noise leaves them (salt and pepper, texels pinned at the
-bounds); :mod:`services.solver.optimize.resolve` then matches the texture's resolution to its
+bounds); :mod:`services.solver.optimize.rules.texture_resolution` then matches the texture's resolution to its
 footprint. Textures seen only through interreflection, and those of emitters, have no direct
 footprint (every count is 0).
 """

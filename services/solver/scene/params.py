@@ -12,7 +12,7 @@ sampling, as in Mitsuba's ``prb``, so no derivative would reach them. A mesh's p
 (``<shape id>.to_world.translate`` / ``.rotate``, :mod:`.geometry`) is a *geometry* parameter: not
 a traverse key, its scalars move the mesh's ``vertex_positions``, and only the methods that sample
 the moving silhouettes (Mitsuba's projective integrators) differentiate it; every other method
-refuses it (``services.solver.optimize.resolve``). So is a mesh's shape,
+refuses it (``services.solver.optimize.validate``). So is a mesh's shape,
 ``<shape id>.vertex_positions`` (:mod:`.shape`): a traverse key, but its scalars are the
 ``LargeSteps`` differential coordinates ``u`` of the vertices, not the vertices themselves.
 """

@@ -1,35 +1,45 @@
-"""What :func:`services.solver.optimize.resolve.resolve` decides for a job that moves a shape (a
-pose, a mesh's vertices): the method, a mesh's optimizer and the curvature of a pose's
-second-order steps (the rules are listed in that module's docstring; the loss's blur is
-:mod:`.blur`'s)."""
+"""A job that moves a shape (a pose, :mod:`services.solver.scene.geometry`; a mesh's vertices in
+LargeSteps coordinates, :mod:`services.solver.scene.shape`): its method, a mesh's optimizer, the
+units of a pose's steps, the curvature of a pose's second-order steps, the remeshing schedule and
+what flat shading costs. Its views and samples are :mod:`.batch`'s, a pose's optimizer
+:mod:`.optimizer`'s, the loss's blur :mod:`services.solver.optimize.blur`'s.
+
+* **The method**: only Mitsuba's projective integrators differentiate a moving silhouette (the
+  validate stage refuses every other method with the reason). ``auto`` takes
+  ``direct-projective`` where paths longer than direct illumination (:data:`DIRECT_DEPTH`) carry
+  at most :data:`~.depth.MISSING_ENERGY` of the image's light (measured,
+  :func:`~services.solver.estimators.render.missing_energy`), else ``prb-projective``.
+* **A pose's steps** are measured in its shape's size (:meth:`ParameterSet.step_units
+  <services.solver.scene.params.ParameterSet.step_units>`): a degree is not a scene unit.
+* **A mesh's vertices**: Adam with one step scale per mesh (``uniform``, as Mitsuba's shape
+  tutorial): its ``3 N`` scalars would take one forward render each for a Jacobian, and per-entry
+  scales would undo the parameterization's smoothing. The job's remeshing schedule
+  (``geometry.remesh_at``) cuts the run into stages, each with its own learning-rate decay, and
+  no stopping rule ends the run before its last stage.
+"""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Protocol
-
 from schemas.job import JobSpec
 from schemas.methods import AUTO, Method
+from services.solver.estimators.render import PathDepth
 from services.solver.optimize.recipe import Remesh
+from services.solver.optimize.rules.depth import MISSING_ENERGY
+from services.solver.optimize.rules.inputs import Decide, Measures, Parameters
 
-if TYPE_CHECKING:
-    from services.solver.estimators.render import PathDepth
-
-
-class Measures(Protocol):
-    """What :func:`geometry_method` measures (of :class:`services.solver.optimize.resolve.Measures`)."""
-
-    def missing_energy(self, depth: PathDepth) -> float:
-        """The share of the image's light a truncated path ``depth`` misses."""
+#: The path depth of direct illumination (emitters seen and one bounce), what ``direct-projective`` renders.
+DIRECT_DEPTH = PathDepth(2, None)
 
 
-def geometry_method(spec: JobSpec, measures: Measures, decide, *, direct: PathDepth, limit: float) -> str:
+def geometry_method(spec: JobSpec, measures: Measures, decide: Decide) -> str:
     """The method of a job that moves a shape: the job's (which the validate stage has checked
-    can differentiate a moving silhouette, :func:`~.validate.check_geometry`), or ``auto``'s
-    projective integrator:
-    ``direct-projective`` where paths longer than ``direct`` carry at most ``limit`` of the light."""
+    can differentiate a moving silhouette,
+    :func:`~services.solver.optimize.validate.check_geometry`), or ``auto``'s projective
+    integrator (module docstring)."""
     if spec.method != AUTO:
         return str(spec.method)
-    missing = measures.missing_energy(direct)
+    limit = MISSING_ENERGY
+    missing = measures.missing_energy(DIRECT_DEPTH)
     share = f"paths longer than direct illumination carry {missing:.2%} of the image's light"
     if missing <= limit:
         decide("method", str(Method.DIRECT_PROJECTIVE),
@@ -43,9 +53,22 @@ def geometry_method(spec: JobSpec, measures: Measures, decide, *, direct: PathDe
     return str(Method.PRB_PROJECTIVE)
 
 
-def shape_optimizer(spec: JobSpec, spans: tuple[tuple[int, int], ...], decide) -> str:
+def step_units(parameters: Parameters, decide: Decide) -> tuple[float, ...]:
+    """Per scalar of a geometry job, one unit of the optimizer's steps in its own units (empty
+    otherwise: all 1)."""
+    units = tuple(float(u) for u in parameters.step_units()) if parameters.has_geometry else ()
+    if any(u != 1.0 for u in units):
+        decide("step_units", ", ".join(f"{u:.4g}" for u in sorted(set(units))),
+               "a pose's steps are measured in its shape's size: a translation in the shape's radius, a rotation in "
+               "radians (which move its farthest vertex by one radius), so that the learning rate and the trust "
+               "region mean the same share of the shape for both (degrees are not scene units)")
+    return units
+
+
+def shape_optimizer(spec: JobSpec, spans: tuple[tuple[int, int], ...], decide: Decide) -> str:
     """Adam, uniform per mesh, for a job that optimizes a mesh's vertices (module docstring; the
-    validate stage has refused a second-order optimizer, :func:`~.validate.check_geometry`)."""
+    validate stage has refused a second-order optimizer,
+    :func:`~services.solver.optimize.validate.check_geometry`)."""
     scalars = sum(stop - start for start, stop in spans)
     decide("optimizer", "adam", f"a mesh's vertices: {scalars} LargeSteps coordinates, whose Jacobian would cost one "
                                 f"forward render each per view; Adam on the adjoint gradient, one step scale per mesh "
@@ -54,9 +77,9 @@ def shape_optimizer(spec: JobSpec, spans: tuple[tuple[int, int], ...], decide) -
     return "adam"
 
 
-def curvature(spec: JobSpec, optimizer: str, blurred_pose: bool, decide) -> str:
+def curvature(spec: JobSpec, optimizer: str, blurred_pose: bool, decide: Decide) -> str:
     """The job's ``hessian``, ``auto`` resolved: ``cross`` for the second-order steps of a pose
-    whose loss is blurred (:mod:`.blur`: films of 48 px and more), else ``successive``."""
+    whose loss is blurred (:mod:`services.solver.optimize.blur`: films of 48 px and more), else ``successive``."""
     if spec.hessian != "auto":
         return spec.hessian
     if blurred_pose and optimizer != "adam":
@@ -69,7 +92,7 @@ def curvature(spec: JobSpec, optimizer: str, blurred_pose: bool, decide) -> str:
     return "successive"
 
 
-def remesh_schedule(spec: JobSpec, decide) -> Remesh | None:
+def remesh_schedule(spec: JobSpec, decide: Decide) -> Remesh | None:
     """The job's remeshing schedule (``geometry.remesh_at``; the schema has checked that the job
     optimizes a mesh's vertices and that every remesh comes before an iteration), None without."""
     geometry = spec.geometry
