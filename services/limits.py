@@ -14,7 +14,7 @@ import binascii
 from schemas.errors import InvalidJob
 from schemas.job import ImageTargets, JobSpec, PathScene, SyntheticTargets
 from schemas.methods import AUTO, Method
-from schemas.solver import FieldConfig
+from schemas.solver import FieldConfig, TrainingConfig
 from services.settings import Limits
 
 
@@ -98,91 +98,154 @@ def check_target_headers(spec: JobSpec, limits: Limits) -> None:
 #: 399,425 vertices on the 2-core CPU (``python -m bench.big_mesh``; set-up is linear in the
 #: vertices since #46), rounded up.
 SETUP_SECONDS_PER_VERTEX = 1e-4
-#: The share of the job budget (``NDRF_MAX_JOB_SECONDS``) its set-up may be estimated to take.
-SETUP_SHARE = 0.5
-
-
-def check_setup(spec: JobSpec, vertices: int, limits: Limits) -> None:
-    """Refuse a job whose set-up alone is estimated to take more than :data:`SETUP_SHARE` of its
-    budget, naming the field to change (a job that could not reach its first iteration would hold
-    a worker for the whole budget and return nothing)."""
-    estimate = vertices * SETUP_SECONDS_PER_VERTEX
-    if estimate > SETUP_SHARE * limits.job_seconds:
-        keys = [p.key for p in spec.parameters if p.key.endswith(".vertex_positions")]
-        raise InvalidJob("parameters", f"{', '.join(keys) or 'the meshes'}: {vertices} vertices to optimize, whose "
-                                       f"set-up is estimated at {estimate:.0f} s, more than {SETUP_SHARE:g} of the job "
-                                       f"budget of {limits.job_seconds:g} s (NDRF_MAX_JOB_SECONDS); optimize a coarser "
-                                       f"mesh (fewer vertices) or raise the budget")
-
-
-#: The share of the job budget its first iteration may be estimated to take.
+#: The share of the job budget (``NDRF_MAX_JOB_SECONDS``) its set-up and first iteration, together,
+#: may be estimated to take (:func:`check_first_iteration`).
 FIRST_ITERATION_SHARE = 0.5
-#: The methods whose first iteration :func:`first_iteration_samples` prices: each sample a traced
-#: path (``auto`` resolves to one of them but in closed scenes, where ``ndrf-lhs`` is cheaper).
+#: Samples of the worker's rate one sample of a synthetic target costs: a primal path of the
+#: same unbounded depth, without the adjoint replay a sample of :func:`first_iteration_samples`
+#: includes. The demo's Cornell box at 256x256 and 16 spp rendered 9.4e5 to 1.1e6 samples per
+#: second, prb's first iteration 3.6e5 to 5.2e5 in the same session (2-core CPU shared with other
+#: work): against the default rate of 5e5, 0.53 of a sample, rounded down.
+TARGET_SAMPLE_COST = 0.5
+#: Samples of the worker's rate one incident sample of the warm-up costs (``training.residual_points``
+#: x ``training.incident_samples`` per step: a hit, an emitter and a BSDF sample, the fields'
+#: forward and backward passes). On the demo (64x64, default training, 2-core CPU shared with other
+#: work) ndrf-lhs trained 2.5e4 incident samples per second (100 and 200 warm-up steps: 71 and 132
+#: s) and radiance-cache (one field) 4.1e4, where prb traced 3.6e5 to 5.2e5 samples per second:
+#: 8.8 to 21 samples each, rounded down to 8 so that the estimate errs short, never refusing a
+#: warm-up that fits (docs/guide/service.md).
+TRAINING_SAMPLE_COST = 8.0
+#: The methods whose first iteration :func:`first_iteration_samples` prices as traced paths (``auto``
+#: resolves to one of them but in closed scenes, where ``ndrf-lhs`` is cheaper).
 TRACED_METHODS = (AUTO, Method.PRB, Method.PRB_PROJECTIVE, Method.DIRECT_PROJECTIVE)
+#: The methods that train fields before their first gradient (``direct`` trains none).
+FIELD_METHODS = (Method.NDRF_LHS, Method.NDRF_RHS, Method.RADIANCE_CACHE)
 #: The optimizers whose steps need the Jacobian, measured at the first iteration's views.
 JACOBIAN_OPTIMIZERS = ("levenberg-marquardt", "gauss-newton")
 
 
+def target_samples(spec: JobSpec, sensors: list) -> int:
+    """Samples the set-up traces for the synthetic targets: every sensor's film (after
+    ``render.resolution``) at ``targets.synthetic.spp``; none for uploaded images."""
+    if not isinstance(spec.targets, SyntheticTargets):
+        return 0
+    return sum(int(w) * int(h) for w, h in sensors) * spec.targets.synthetic.spp
+
+
+def warmup_steps(spec: JobSpec) -> int:
+    """Training steps before the first gradient, each of ``training.residual_points`` x
+    ``training.incident_samples`` incident samples: ``training.warmup_steps`` (adaptive: at most),
+    with ``warm_start`` its top-up (``top_up_steps``, or a quarter of the warm-up), when the job
+    trains a field (a field method, the field's candidate or Jacobian, the many-parameter head);
+    0 otherwise."""
+    training = spec.training
+    if not (spec.method in FIELD_METHODS or spec.render.candidate == "field" or spec.jacobian == "differential-field"
+            or training.head is not None):
+        return 0
+    if spec.warm_start is not None:
+        top_up = spec.warm_start.top_up_steps
+        return top_up if top_up is not None else training.warmup_steps // 4
+    return training.warmup_steps
+
+
 def first_iteration_samples(spec: JobSpec, sensors: list, scalars: int, every_view: bool) -> tuple[int, int, int]:
-    """Samples the first iteration of a path-traced job traces, at least, as ``(pixels, per
-    pixel, Jacobian renders per view)`` (``bench/first_iteration.py`` times them): the films of
-    its first batch of views (``auto``: one, or every view with ``every_view``, a mesh's or a
-    texture's job; the smallest films, as the batch is drawn) times the samples per pixel of each view's renders: under Adam
-    one differentiable render, the mean of ``spp`` (its primal pass) and ``gradient_spp`` (its
-    adjoint replay), which together cost about one forward-mode sample; under an explicit
-    Levenberg-Marquardt or Gauss-Newton, ``gradient_spp`` for each forward-mode render of the
-    Jacobian (one per channel group: at least a third of the scalars, one R, one G and one B per
-    group) and ``spp`` for the candidate when it differs. The recipe may raise a geometry job's
-    spp or pick Levenberg-Marquardt under ``auto``: never below this count. Zero for the field
-    methods (their cost is the training, capped by ``NDRF_MAX_TRAINING_*``)."""
-    if spec.method not in TRACED_METHODS or not sensors:
+    """Samples the first iteration's renders trace, at least, as ``(pixels, per pixel, Jacobian
+    renders per view)`` (``bench/first_iteration.py`` times them): the films of its first batch
+    of views (``auto``: one, or every view with ``every_view``, a mesh's or a texture's job; the
+    smallest films, as the batch is drawn) times the samples per pixel of each view's renders:
+    under Adam one differentiable render, the mean of ``spp`` (its primal pass) and
+    ``gradient_spp`` (its adjoint replay), which together cost about one forward-mode sample;
+    under an explicit Levenberg-Marquardt or Gauss-Newton, ``gradient_spp`` for each forward-mode
+    render of the Jacobian (one per channel group: at least a third of the scalars, one R, one G
+    and one B per group) and ``spp`` for the candidate when it differs. The recipe may raise a
+    geometry job's spp or pick Levenberg-Marquardt under ``auto``: never below this count. The
+    field methods and ``direct`` as under Adam (a path-traced candidate, a camera-hit query; their
+    Jacobian is a field query): their training is :func:`warmup_steps`."""
+    if not sensors:
         return 0, 0, 0
     render, views = spec.render, spec.views_per_iteration
     count = (len(sensors) if every_view else 1) if views == "auto" else min(int(views), len(sensors))
     pixels = sum(sorted(int(w) * int(h) for w, h in sensors)[:count])
-    if spec.optimizer in JACOBIAN_OPTIMIZERS and spec.jacobian == "method":
+    traced = spec.method in TRACED_METHODS
+    if traced and spec.optimizer in JACOBIAN_OPTIMIZERS and spec.jacobian == "method":
         groups = max(1, -(-scalars // 3))
         return pixels, groups * render.gradient_spp + (render.spp if render.spp != render.gradient_spp else 0), groups
-    return pixels, (render.spp + render.gradient_spp + 1) // 2, 0
+    candidate = render.spp if traced or render.candidate == "path" else 0
+    return pixels, (candidate + render.gradient_spp + 1) // 2, 0
+
+
+def _render_field(spec: JobSpec, pixels: int, groups: int, rate: float, left: float) -> str:
+    """The field that lowers the first iteration's renders: the Jacobian's (``parameters``) or the
+    spp that dominates, else, when they would not fit even at 1 spp, ``render.resolution``."""
+    render = spec.render
+    if pixels / rate > left:
+        return "render.resolution"
+    if groups * render.gradient_spp >= render.spp:
+        return "parameters" if groups > 1 and pixels * render.gradient_spp / rate <= left else "render.gradient_spp"
+    return "render.spp" if render.spp >= render.gradient_spp else "render.gradient_spp"
 
 
 def check_first_iteration(spec: JobSpec, report: dict, limits: Limits) -> None:
-    """Refuse a path-traced job whose first iteration is estimated to take more than
+    """Refuse a job whose set-up and first iteration together are estimated to take more than
     :data:`FIRST_ITERATION_SHARE` of its budget, at ``NDRF_MAX_WORKER_SAMPLES_PER_SECOND``,
-    naming the field to change: films, spp, views and scalars can each pass their caps and
-    together need hours for one iteration, holding a worker for the budget to return nothing.
-    The field: the Jacobian's (``parameters``) or the spp that dominates, else, when the job
-    would not fit even at 1 spp, ``render.resolution``."""
-    sensors = report["sensors"]
-    every_view = bool(report.get("vertices") or report.get("texels"))   # a mesh's or a texture's job
+    naming the field of the largest term to change: films, spp, views, scalars, vertices and
+    training can each pass their caps and together need hours before one iteration, holding a
+    worker for the budget to return nothing. The terms: the meshes' set-up
+    (:data:`SETUP_SECONDS_PER_VERTEX`), the synthetic targets (:func:`target_samples`), the
+    renders (:func:`first_iteration_samples`) and the warm-up training (:func:`warmup_steps`)."""
+    sensors, vertices = report["sensors"], int(report.get("vertices") or 0)
+    every_view = bool(vertices or report.get("texels"))   # a mesh's or a texture's job
     pixels, per_pixel, groups = first_iteration_samples(spec, sensors, int(report.get("scalars") or 0), every_view)
     rate, most = limits.worker_samples_per_second, FIRST_ITERATION_SHARE * limits.job_seconds
-    estimate = pixels * per_pixel / rate
+    render, training = spec.render, spec.training
+    steps = warmup_steps(spec)
+    targets, lanes = target_samples(spec, sensors), steps * training.residual_points * training.incident_samples
+    target_spp = spec.targets.synthetic.spp if isinstance(spec.targets, SyntheticTargets) else 0
+    films = ", ".join(f"{w}x{h}" for w, h in sensors[:4]) + (", ..." if len(sensors) > 4 else "")
+    keys = [p.key for p in spec.parameters if p.key.endswith(".vertex_positions")]
+    jacobian = f", {groups} Jacobian renders per view ({report.get('scalars')} scalars)" if groups else ""
+    terms = {   # field -> (seconds, what was counted)
+        "parameters": (vertices * SETUP_SECONDS_PER_VERTEX,
+                       f"{', '.join(keys) or 'the meshes'}: {vertices} vertices to optimize (a coarser mesh has "
+                       f"fewer), whose set-up"),
+        "targets.synthetic.spp": (targets * TARGET_SAMPLE_COST / rate,
+                                  f"the synthetic targets' {targets:.3g} samples ({len(sensors)} sensors, films "
+                                  f"{films}, x spp {target_spp})"),
+        "render": (pixels * per_pixel / rate,
+                   f"the first iteration's {pixels * per_pixel:.3g} samples ({pixels} pixels of its first views, "
+                   f"films {films}, x {per_pixel} per pixel: spp {render.spp}, gradient_spp "
+                   f"{render.gradient_spp}{jacobian})"),
+        "training": (lanes * TRAINING_SAMPLE_COST / rate,
+                     f"the warm-up's {lanes:.3g} incident samples ({steps} steps x "
+                     f"residual_points {training.residual_points} x incident_samples {training.incident_samples}, "
+                     f"each {TRAINING_SAMPLE_COST:g} samples)")}
+    estimate = sum(seconds for seconds, _ in terms.values())
     if estimate <= most:
         return
-    render = spec.render
-    if pixels / rate > most:
-        field = "render.resolution"
-    elif groups * render.gradient_spp >= render.spp:
-        field = "parameters" if groups > 1 and pixels * render.gradient_spp / rate <= most else "render.gradient_spp"
-    else:
-        field = "render.spp" if render.spp >= render.gradient_spp else "render.gradient_spp"
-    films = ", ".join(f"{w}x{h}" for w, h in sensors[:4]) + (", ..." if len(sensors) > 4 else "")
-    jacobian = f", {groups} Jacobian renders per view ({report.get('scalars')} scalars)" if groups else ""
-    raise InvalidJob(field, f"the first iteration would trace {pixels * per_pixel:.3g} samples ({pixels} pixels of "
-                            f"its first views, films {films}, x {per_pixel} per pixel: spp {render.spp}, gradient_spp "
-                            f"{render.gradient_spp}{jacobian}), estimated at {estimate:.0f} s at {rate:g} samples per "
-                            f"second (NDRF_MAX_WORKER_SAMPLES_PER_SECOND), more than {FIRST_ITERATION_SHARE:g} of the "
-                            f"job budget of {limits.job_seconds:g} s (NDRF_MAX_JOB_SECONDS); lower {field} or raise "
-                            f"the budget")
+    largest = max(terms, key=lambda name: terms[name][0])
+    left = most - (estimate - terms[largest][0])
+    field = largest
+    if largest == "targets.synthetic.spp" and targets // target_spp * TARGET_SAMPLE_COST / rate > left:
+        field = "render.resolution"     # not even at 1 spp
+    elif largest == "render":
+        field = _render_field(spec, pixels, groups, rate, left)
+    elif largest == "training":         # the factor further above its default
+        defaults = TrainingConfig()
+        batch = training.residual_points * training.incident_samples
+        field = "warm_start.top_up_steps" if spec.warm_start is not None else "training.warmup_steps" \
+            if steps / defaults.warmup_steps >= batch / (defaults.residual_points * defaults.incident_samples) \
+            else "training.residual_points"
+    counted = "; ".join(f"{what} {seconds:.0f} s" for seconds, what in terms.values() if seconds >= 0.5)
+    raise InvalidJob(field, f"set-up and first iteration estimated at {estimate:.0f} s ({counted}; at {rate:g} samples "
+                            f"per second, NDRF_MAX_WORKER_SAMPLES_PER_SECOND), more than {FIRST_ITERATION_SHARE:g} "
+                            f"of the job budget of {limits.job_seconds:g} s (NDRF_MAX_JOB_SECONDS); lower {field} or "
+                            f"raise the budget")
 
 
 def check_scene_report(spec: JobSpec, report: dict, limits: Limits) -> None:
     """Caps on what the sandboxed loader read from the scene: sensors and their films (after
-    the job's ``render.resolution``), the samples they imply, the set-up its meshes need
-    (:func:`check_setup`) and the cost of its first iteration (:func:`check_first_iteration`)."""
-    check_setup(spec, int(report.get("vertices") or 0), limits)
+    the job's ``render.resolution``), then the estimate of the job's set-up (its meshes, its
+    synthetic targets) and first iteration (:func:`check_first_iteration`)."""
     sensors = report["sensors"]
     if len(sensors) > limits.sensors:
         raise InvalidJob("scene", f"the scene has {len(sensors)} sensors, more than the limit of {limits.sensors} "

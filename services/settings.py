@@ -51,11 +51,12 @@ class Limits(BaseSettings):
                                                                  "(hash tables and MLP weights).")
     job_seconds: float = Field(6 * 3600.0, ge=1.0, description="Wall-clock budget of one job attempt.")
     worker_samples_per_second: float = Field(
-        5e5, ge=1.0, description="Samples a worker traces per second, for the estimate of a path-traced job's first "
-                                 "iteration at submission (services.limits.check_first_iteration): a job estimated "
-                                 "past half of NDRF_MAX_JOB_SECONDS is refused naming the field to change. The default "
-                                 "is the slowest worker measured, 2 CPU cores shared with other work (5.4e5 to 1.2e6, "
-                                 "python -m bench.first_iteration), rounded down; a "
+        5e5, ge=1.0, description="Samples a worker traces per second, for the estimate of a job's set-up and first "
+                                 "iteration at submission (services.limits.check_first_iteration: its meshes, its "
+                                 "synthetic targets, its renders and its fields' warm-up, in samples): a job "
+                                 "estimated past half of NDRF_MAX_JOB_SECONDS is refused naming the field to change. "
+                                 "The default is the slowest worker measured, 2 CPU cores shared with other work "
+                                 "(5.4e5 to 1.2e6, python -m bench.first_iteration), rounded down; a "
                                  "deployment whose workers all have GPUs raises it (the API cannot know which "
                                  "worker takes the job).")
     job_bytes: int = Field(2 << 30, ge=1 << 20, description="Disk budget of one job's files in the store.")

@@ -5,7 +5,7 @@ optimize) against a real ``ndrf serve`` and one ``ndrf worker`` (Redis mode).
   bob one tiny job right after; with one worker bob's job starts after alice's first job and
   before her second (the fair share of docs/guide/service.md: "a key's small job waits for at most
   one running job of each other key per free worker"), and alice's first job is short: its set-up
-  is bounded at submission (``services.limits.check_setup``).
+  is bounded at submission (``services.limits.check_first_iteration``).
 * A cancel during set-up ends the job within seconds, not after the stop's grace period
   (``services.jobs.runner.STOP_GRACE_SECONDS``): before #46 it took the full 60 s.
 """
