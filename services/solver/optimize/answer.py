@@ -37,25 +37,25 @@ trend moved past the mean (a run that still moves goes on about as far again: it
 approach the truth exponentially over a third of the run were covered by ±2 SE for 74% of
 scalars, none without; ``tests/unit/test_answer.py``).
 
-The window. The model is local: far from the answer ``H`` changes and the Newton estimates of
-early iterations are off. A :class:`NewtonAnswer`'s window never reaches into the first :data:`TAIL` of the run (a
-suffix average, Rakhlin, Shamir & Sridharan 2012: the transient is left out whatever a test says
-of it; on the demo the whole run had stayed in the window, its first iteration at the initial
-values, and the floor read from those iterations stopped a run at 17 of 120 iterations). Within
-that tail it is the longest suffix whose two halves give
-estimates that agree within the errors the recent half's noise gives them (``χ²`` of their
-difference below its :data:`AGREEMENT` quantile, :func:`consistent`), tried at lengths shrinking
-by a quarter down to :data:`MIN_WINDOW` iterations. So it restarts when the
-parameters move. (With each half's own residuals, iterations the model does not fit widen their
-own error bars and pass: on the bright closed room the whole run stayed in the window, and the
-errors were twice the standard errors at every budget.)
+The window. The model is local: far from the answer ``H`` changes and the Newton estimates of early
+iterations are off. A :class:`NewtonAnswer`'s window never reaches into the first :data:`TAIL` of
+the run (a suffix average, Rakhlin, Shamir & Sridharan 2012: the transient is left out whatever a
+test says of it; on the demo the whole run had stayed in the window, its first iteration at the
+initial values, and the floor read from those iterations stopped a run at 17 of 120 iterations).
+Within that tail it is the longest suffix whose two halves give estimates that agree within the
+errors the recent half's noise gives them (``χ²`` of their difference below its
+:data:`~.significance.AGREEMENT` quantile, :func:`~.significance.consistent`), tried at lengths
+shrinking by a quarter down to :data:`MIN_WINDOW` iterations. So it restarts when the parameters
+move. (With each half's own residuals, iterations the model does not fit widen their own error bars
+and pass: on the bright closed room the whole run stayed in the window, and the errors were twice
+the standard errors at every budget.)
 
 A biased gradient (a learned field's ``dz/dp``: ``ndrf-rhs``'s, a radiance cache's)
 moves every Newton estimate by ``-H⁻¹ b`` for its bias ``b``, which no error of its noise holds.
 Where the recipe checks it (``bias_every``), ``prb``'s unbiased ``dz/dp`` of the same views at the
 same parameters gives ``d_k = g_prb,k - g_k``, ``E d_k = -b``; over the window's checks
 (:data:`MIN_CHECKS` at least, whose mean ``d̄`` differs from 0 beyond its noise at the
-:data:`BIAS_LEVEL` level)
+:data:`~.significance.BIAS_LEVEL` level in some scalar, :func:`~.significance.biased`)
 
     p̂ ← p̂ - H⁻¹ d̄,        Cov p̂ ← Cov p̂ + H⁻¹ (Cov d / n) H⁻¹
 
@@ -69,11 +69,11 @@ which no number of iterations lowers (:mod:`.floor`): ``SE = sqrt(SE_run² + SE_
 from __future__ import annotations
 
 from dataclasses import dataclass
-from statistics import NormalDist
 
 import numpy as np
 
 from services.solver.optimize.floor import Floor
+from services.solver.optimize.significance import biased, consistent
 
 #: The fewest iterations an estimate averages (below: the last iterate, no standard error).
 MIN_WINDOW = 8
@@ -83,10 +83,6 @@ CURVATURE_MEMORY = 32
 MAX_WINDOW = 8192
 #: Batches of a :class:`MeanAnswer`: between this and twice this many are kept.
 BATCHES = 16
-#: The χ² quantile two halves of a window must agree within.
-AGREEMENT = 0.99
-#: A biased gradient's checks correct the answer only where their mean differs from 0 at this level.
-BIAS_LEVEL = 0.95
 #: The fewest checks of a biased gradient (:meth:`NewtonAnswer.check`) in a window its bias is corrected from.
 MIN_CHECKS = 3
 #: The share of the run, from its start, that no window reaches into.
@@ -120,31 +116,6 @@ class Estimate:
     @property
     def iterations(self) -> int:
         return self.end - self.start + 1
-
-
-def chi2_quantile(dof: int, q: float = AGREEMENT) -> float:
-    """The ``q`` quantile of ``χ²`` with ``dof`` degrees of freedom (Wilson-Hilferty; within 1%
-    for dof >= 1 at q = 0.99)."""
-    z = NormalDist().inv_cdf(q)
-    return dof * (1 - 2 / (9 * dof) + z * np.sqrt(2 / (9 * dof))) ** 3
-
-
-def consistent(first: tuple[np.ndarray, np.ndarray], second: tuple[np.ndarray, np.ndarray]) -> bool:
-    """Whether two independent estimates ``(values (P,), Cov)`` agree within their errors: ``χ²``
-    of their difference below the :data:`AGREEMENT` quantile. ``Cov`` is ``(P, P)``, or ``(P,)``
-    for a diagonal one."""
-    difference = first[0] - second[0]
-    covariance = first[1] + second[1]
-    if covariance.ndim == 1:
-        seen = covariance > 0
-        chi2 = float(np.sum(difference[seen] ** 2 / covariance[seen]))
-        return chi2 <= chi2_quantile(max(int(seen.sum()), 1)) and not np.any(difference[~seen])
-    scale = np.sqrt(np.clip(np.diag(covariance), 1e-300, None))
-    try:
-        chi2 = float(difference / scale @ np.linalg.solve(covariance / np.outer(scale, scale), difference / scale))
-    except np.linalg.LinAlgError:
-        return False
-    return chi2 <= chi2_quantile(difference.size)
 
 
 def newton_estimate(p: np.ndarray, g: np.ndarray, w: np.ndarray, h: np.ndarray, h_inv: np.ndarray,
@@ -236,19 +207,13 @@ class NewtonAnswer:
     def _bias(self, start: int, h_inv: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """``(H⁻¹ d̄, H⁻¹ Cov d̄ H⁻¹)`` from the checks of iterations ``>= start`` (the window): the
         shift of the Newton estimate the gradients' mean bias ``-d̄`` makes, and its covariance;
-        None with fewer than :data:`MIN_CHECKS`, or where ``d̄`` is within its own noise (``χ²``
-        below the :data:`BIAS_LEVEL` quantile: a correction by noise alone would only add prb's
-        noise to the answer)."""
+        None with fewer than :data:`MIN_CHECKS`, or where no scalar's ``d̄`` is beyond its own noise
+        (:func:`~.significance.biased`: a correction by noise alone would only add prb's noise to the answer)."""
         differences = np.array([d for k, d in self.checks if k >= start])
-        if len(differences) < MIN_CHECKS:
+        if len(differences) < MIN_CHECKS or not biased(differences):
             return None
-        mean = differences.mean(axis=0)
         spread = np.atleast_2d(np.cov(differences, rowvar=False)) / len(differences)
-        scale = np.sqrt(np.clip(np.diag(spread), 1e-300, None))
-        chi2 = float(mean / scale @ np.linalg.pinv(spread / np.outer(scale, scale)) @ (mean / scale))
-        if chi2 <= chi2_quantile(mean.size, BIAS_LEVEL):   # no bias the checks can tell from their noise
-            return None
-        return h_inv @ mean, h_inv @ spread @ h_inv.T
+        return h_inv @ differences.mean(axis=0), h_inv @ spread @ h_inv.T
 
     def residual(self, k: int, view: int, residual: np.ndarray, jacobian: np.ndarray | None,
                  weight: float = 1.0) -> None:
