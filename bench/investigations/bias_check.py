@@ -208,7 +208,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--budgets", default="0.5", help="multiples of each example's iterations")
     parser.add_argument("--out", type=Path, default=OUT)
     parser.add_argument("--offline", action="store_true",
-                        help="no runs: form the recorded runs' answers again (after a change to the variants)")
+                        help="no runs: form the recorded runs' answers again (after a change to the variants; "
+                             "needs a file written with --keep-answers)")
+    parser.add_argument("--keep-answers", action="store_true",
+                        help="keep each run's answer state in --out (hundreds of MB for room-closed-8's floor: "
+                             "keep such a file out of bench/results)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     results = json.loads(args.out.read_text()) if args.out.exists() else {"machine": machine(), "jobs": {}}
@@ -229,6 +233,8 @@ def main(argv: list[str] | None = None) -> None:
                 if any(r["seed"] == seed for r in runs):
                     continue
                 runs.append(run(job, seed, iterations))
+                if not args.keep_answers:
+                    runs[-1].pop("answer")
                 log.info("%s seed %d, %d iterations: %s", name, seed, iterations,
                          {v: round(float(np.max(np.abs(runs[-1]["variants"][v]["error"]))), 4) for v in VARIANTS})
                 args.out.write_text(json.dumps(results, indent=1))
