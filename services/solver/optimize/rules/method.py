@@ -57,20 +57,19 @@ def auto_method(spec: JobSpec, parameters: Parameters, measures: Measures, decid
             width, height = measures.film()
             work = width * height * spec.iterations
             size = f"{work / 2**10:.0f} Ki pixel-iterations ({NDRF_MIN_WORK / 2**10:g} Ki pay for the warm-up)"
-            hidden = work >= NDRF_MIN_WORK and not all(measures.direct())
-            if hidden:
+            if work < NDRF_MIN_WORK:
+                why = f"{share} (a closed scene), but only {size}: the field's warm-up would cost more than it saves; "
+            elif not all(measures.direct()):
                 why = (f"{share} (a closed scene), but a scalar is seen only through interreflection: dL_theta learns "
                        f"its derivative from interreflection alone, and at equal seconds prb's answer was better on "
                        f"bright-room (bench/results/pareto-bright.md); ")
-            elif work >= NDRF_MIN_WORK:
+            else:
                 decide("method", str(Method.NDRF_LHS),
                        f"{share} (a closed scene) and {size}: light paths are long, a prb render costs more with "
                        f"every bounce and its forward-mode Jacobian is noisy, while an NDRF iteration costs the same "
                        f"at any depth and its Jacobian is a smooth field query; at equal seconds its answer was "
                        f"better on room-closed-8 (bench/results/pareto-ndrf.md)")
                 return str(Method.NDRF_LHS)
-            else:
-                why = f"{share} (a closed scene), but only {size}: the field's warm-up would cost more than it saves; "
     decide("method", str(Method.PRB), f"prb: {why}an unbiased gradient for one adjoint render per view, whatever the "
                                       f"number of scalars; no field to train before the first step")
     return str(Method.PRB)
