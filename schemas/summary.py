@@ -28,7 +28,8 @@ class Summary(BaseModel):
     estimate: list[float] | None = Field(None, description="The answer: the best estimate of each listed scalar "
                                          "from the iterations of its window, not the last iterate.")
     standard_error: list[float] | None = Field(None, description="Standard error of each scalar of estimate (None: "
-                                               "too few iterations to tell).")
+                                               "too few iterations to tell, or no window of them that "
+                                               "a test showed settled: the run was still moving).")
     estimate_kind: str | None = Field(None, description="How the estimate was formed: the window's mean, or the "
                                       "Newton point of the quadratic model it fits.")
     estimate_window: list[int] | None = Field(None, description="[first, last] iteration the estimate averages.")

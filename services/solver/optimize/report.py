@@ -77,7 +77,7 @@ class RunOutcome:
     estimate: list[float] | None = None          # the answer: the estimate of every listed scalar
     error: str | None = None
     field: str | None = None
-    standard_error: list[float] | None = None    # of each scalar of ``estimate`` (None: too few iterations)
+    standard_error: list[float] | None = None    # of each scalar of ``estimate`` (None: no settled window)
     last_iterate: list[float] | None = None      # the parameters of the last step, not averaged
     estimate_kind: str | None = None             # how the answer was formed (schemas.summary.Summary)
     estimate_window: list[int] | None = None

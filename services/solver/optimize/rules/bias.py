@@ -29,7 +29,10 @@ from services.solver.optimize.rules.inputs import Decide, Parameters
 #: (room-closed-8 at 30 iterations, seeds 0-2: max error 0.0004, 0.0017, 0.0016 unchecked; 0.019,
 #: 0.013, 0.0053 corrected; ``bench.investigations.bias_check``). A test of the checks' mean at 5%
 #: never called it biased there, nor on bright-room, whose errors are 5 times its standard errors
-#: (per-scalar t about 1 against a threshold of 4).
+#: (per-scalar t about 1 against a threshold of 4). Nor ``ndrf-lhs`` where a scalar is seen only
+#: through interreflection: on bright-room as written (80 iterations, seed 0) the correction moved
+#: the hidden sphere's answer from 0.056 to 0.2 off, its standard errors 0.18 to 0.35 (prb at 4 spp
+#: hardly sees the sphere), where the unchecked answer was within 2 of its own.
 BIASED_GRADIENTS = (Method.NDRF_RHS, Method.RADIANCE_CACHE)
 #: One ``prb`` adjoint render per view of every this many iterations: ten in the window of a
 #: 30-iteration run (its last two thirds), at half a prb run's renders.
