@@ -48,8 +48,8 @@ errors the recent half's noise gives them (``χ²`` of their difference below it
 shrinking by a quarter down to :data:`MIN_WINDOW` iterations, and never shorter than halves that
 each measure their noise with two degrees of freedom (``2 (P + 2)`` iterations): a window no test
 has shown settled gives its estimate with no standard error (the pose example at 20 iterations, 6
-scalars: its untested 11-iteration window's ±2 SE held 40% of scalars, median |error|/SE 2.5; its
-last iterate instead was 1.5 times further off). So it restarts when the parameters move. (With each half's own residuals, iterations the model does not fit widen their own error bars
+scalars: its untested 11-iteration window's ±2 SE held 40% of scalars, median |error|/SE 2.5).
+So it restarts when the parameters move. (With each half's own residuals, iterations the model does not fit widen their own error bars
 and pass: on the bright closed room the whole run stayed in the window, and the errors were twice
 the standard errors at every budget.)
 
