@@ -49,9 +49,9 @@ shrinking by a quarter down to :data:`MIN_WINDOW` iterations, and never shorter 
 each measure their noise with two degrees of freedom (``2 (P + 2)`` iterations): a window no test
 has shown settled gives its estimate with no standard error (the pose example at 20 iterations, 6
 scalars: its untested 11-iteration window's ±2 SE held 40% of scalars, median |error|/SE 2.5).
-So it restarts when the parameters move. (With each half's own residuals, iterations the model does not fit widen their own error bars
-and pass: on the bright closed room the whole run stayed in the window, and the errors were twice
-the standard errors at every budget.)
+So it restarts when the parameters move. (With each half's own residuals, iterations the model
+does not fit widen their own error bars and pass: on the bright closed room the whole run stayed
+in the window, and the errors were twice the standard errors at every budget.)
 
 A biased gradient (a learned field's ``dz/dp``: ``ndrf-rhs``'s, a radiance cache's)
 moves every Newton estimate by ``-H⁻¹ b`` for its bias ``b``, which no error of its noise holds.
