@@ -65,13 +65,15 @@ def test_a_cancel_during_the_set_up_ends_it_there(mi, tmp_path):
 def test_a_biased_method_is_checked_against_prb_and_resumes_exactly(mi, tmp_path):
     """ndrf-rhs under Levenberg-Marquardt: the plan says prb checks its dz/dp every
     ``BIAS_EVERY`` iterations, and a run interrupted after some checks resumes to the same answer
-    and standard errors (the checks' own checkpoint round trip: ``test_answer.py``). About 2
-    minutes."""
+    and standard errors (the checks' own checkpoint round trip: ``test_answer.py``). About 20
+    s."""
     from services.solver.optimize.resolve import BIAS_EVERY
     from tests.support.jobs import SMALL_TRAINING
     from tests.support.jobs import run_job as _run
 
-    job = _job(method="ndrf-rhs", training=SMALL_TRAINING, iterations=24)
+    # 32 iterations: a window of 18 whose halves can be tested for 6 scalars (2 (P + 2) = 16), so a
+    # standard error (at 24 the longest window, 13, gives none)
+    job = _job(method="ndrf-rhs", training=SMALL_TRAINING, iterations=32)
     reference = _run(job, tmp_path / "uninterrupted")
     plan = json.loads((tmp_path / "uninterrupted" / "plan.json").read_text())
     assert plan["recipe"]["optimizer"] == "levenberg-marquardt" and plan["recipe"]["bias_every"] == BIAS_EVERY
