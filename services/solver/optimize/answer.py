@@ -200,16 +200,14 @@ class NewtonAnswer:
             length = length * 3 // 4
         while length >= MIN_WINDOW:
             start, half = k - length, k - length + length // 2
-            values, covariance, _ = fit(start, k)
-            bias = self._bias(last - length + 1, h_inv)
-            if bias is not None:   # the biased gradients' Newton estimate, moved by what prb measured
-                values, covariance = values - bias[0], covariance + bias[1]
             if length < testable:  # no test can show this window settled: its estimate, with no error
+                values, _ = self._corrected(fit(start, k), last - length + 1, h_inv)
                 return Estimate(np.clip(values, self.lower, self.upper), None, last - length + 1, last, self.kind)
             # the older half judged with the recent half's noise: iterations the quadratic model does
             # not fit would otherwise widen their own error bars and pass
             recent = fit(half, k)
             if consistent(fit(start, half, recent[2])[:2], recent[:2]):
+                values, covariance = self._corrected(fit(start, k), last - length + 1, h_inv)
                 run = np.clip(np.diag(covariance), 0.0, None)
                 floor = self.floor.covariance(last - length + 1, h_inv)
                 total = run if floor is None else run + np.clip(np.diag(floor), 0.0, None)
@@ -217,6 +215,13 @@ class NewtonAnswer:
                                 self.kind, np.sqrt(run), None if floor is None else np.sqrt(np.diag(floor)))
             length = length * 3 // 4
         return Estimate(self.points[-1], None, last, last, "last")
+
+    def _corrected(self, fitted: tuple, start: int, h_inv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A window's Newton estimate and covariance (``fitted``), moved by what prb's checks of
+        iterations ``>= start`` measured of a biased gradient (:meth:`_bias`; unmoved without)."""
+        values, covariance, _ = fitted
+        bias = self._bias(start, h_inv)
+        return (values, covariance) if bias is None else (values - bias[0], covariance + bias[1])
 
     def _bias(self, start: int, h_inv: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """``(H⁻¹ d̄, H⁻¹ Cov d̄ H⁻¹)`` from the checks of iterations ``>= start`` (the window): the
