@@ -15,7 +15,8 @@ views, estimated from the views that have one as ``(S / #views) Σ H_s``. The th
                 slowly. Only Jacobians taken within :data:`FRESH` learning rates of the current
                 parameters count: while the parameters travel (far from the answer, where the
                 signal beats the noise) the curvature comes from this iteration's own Jacobians.
-                One view per iteration is measured (the batch's first, rotating with the stream).
+                One view per measurement, turning through the batch's views (a batch of every view
+                lists them in one order: its first alone, view 0, had stood for all of them).
 ``product``     ``(2/n) JᵀJ`` of this iteration's views, biased upwards by ``J``'s variance
 ``cross``       this iteration's ``J_a`` against a second, independent estimate ``J_b``
 
@@ -106,8 +107,11 @@ class Curvature:
         of each (2 for ``cross``): none between measurements."""
         if self.hessian is not None and k % self.every:
             return [], 0
-        measured = views[:1] if self.kind == "successive" else list(views)
-        return measured, 2 if self.kind == "cross" else 1
+        if self.kind != "successive":
+            return list(views), 2 if self.kind == "cross" else 1
+        # one view, turning through the batch from one measurement to the next: a batch of every
+        # view lists them in the same order each time, and its first alone would stand for them all
+        return [views[(k // self.every) % len(views)]], 1
 
     def update(self, jacobians: dict[int, list[np.ndarray]], at: np.ndarray, lr: float) -> np.ndarray:
         """The curvature from this iteration's block-averaged Jacobians ``{view: [J (P, n), ...]}``
@@ -125,7 +129,9 @@ class Curvature:
         current = {view: estimates[0] for view, estimates in jacobians.items()}
         fresh = ([[jac for taken, jac in pairs if np.max(np.abs(taken - at)) <= FRESH * lr]
                   for pairs in self.memory.values()] if self.kind == "successive" else [])
-        remembered = [hessian_of(*jacs[:2]) for jacs in fresh if jacs]
+        # views with two fresh Jacobians: their cross product is unbiased by J's noise, where one
+        # Jacobian's square is not (mixed in, the product's bias was in every estimate)
+        remembered = [hessian_of(*jacs[:2]) for jacs in fresh if len(jacs) >= 2]
         if remembered:
             self.hessian = np.sum(remembered, axis=0) * views / len(remembered)
         else:  # "product", or nothing fresh to remember
