@@ -47,7 +47,9 @@ def run(job: dict, seed: int, iterations: int) -> dict:
     se = summary.get("standard_error")
     return {"seed": seed, "iterations": iterations, "status": summary["status"], "ran": summary["iterations"],
             "capped": "cap of" in summary["stopped"]["reason"], "stopped": summary["stopped"]["reason"],
-            "error": (final - truth).tolist(), "standard_error": se, "seconds": time.perf_counter() - started}
+            "error": (final - truth).tolist(), "standard_error": se, "run_error": summary.get("run_error"),
+            "floor_error": summary.get("floor_error"), "window": summary.get("estimate_window"),
+            "seconds": time.perf_counter() - started}
 
 
 def judge(runs: list[dict]) -> dict:

@@ -17,32 +17,16 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
 from bench.common import machine, markdown_table, write_markdown
+from bench.coverage import run
 
 log = logging.getLogger("bench.investigations.calibration")
 ROOT = Path(__file__).resolve().parents[2]
 OUT = ROOT / "bench" / "results" / "calibration.json"
-
-
-def run(job: dict, seed: int, iterations: int) -> dict:
-    """One run of ``job`` through the product's loop: its error, standard error and its parts."""
-    from schemas.job import JobSpec
-    from services.jobs.local import run_local
-
-    started = time.perf_counter()
-    with tempfile.TemporaryDirectory() as tmp:
-        summary = run_local(JobSpec.model_validate(dict(job, seed=seed, iterations=iterations)), Path(tmp) / "job")
-    error = np.asarray(summary["estimate"], float) - np.asarray(summary["target_values"], float)
-    return {"seed": seed, "error": error.tolist(), "standard_error": summary["standard_error"],
-            "run_error": summary["run_error"], "floor_error": summary["floor_error"],
-            "window": summary["estimate_window"], "stopped": summary["stopped"]["reason"],
-            "seconds": time.perf_counter() - started}
 
 
 def judge(runs: list[dict]) -> dict:
